@@ -1,0 +1,17 @@
+//! `lfcam-core`: the per-pixel kernels of lfcam, in pure Rust.
+//!
+//! Kernels take borrowed input views and a caller-owned output, check every size
+//! first and return [`Result`]; they never panic on user data. Threading is decided in
+//! one place, [`parallel`]. Nothing here knows about Python: the bindings live in the
+//! `lfcam-py` crate.
+
+#![forbid(unsafe_code)]
+
+pub mod crop;
+pub mod error;
+pub mod image;
+pub mod parallel;
+
+pub use crate::crop::crop_lenslets;
+pub use crate::error::{Error, Result};
+pub use crate::image::ImageView;

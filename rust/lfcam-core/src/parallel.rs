@@ -1,0 +1,308 @@
+//! The one place that decides threading: lfcam's own rayon pool and the chunking
+//! policy every kernel uses.
+//!
+//! # The pool
+//! Kernels never touch rayon's global pool. They run in a process-wide [`ThreadPool`]
+//! built lazily on first use, with [`ENV_NUM_THREADS`] (`LFCAM_NUM_THREADS`, read once,
+//! when the pool is first needed) threads if that is set to a positive integer, else
+//! one per available core. [`set_num_threads`] replaces it.
+//!
+//! # Fork safety
+//! After `fork()` (Python's `multiprocessing` with the `fork` start method) the child
+//! has a copy of the pool's bookkeeping but none of its threads: a job sent to it would
+//! wait forever. The pool therefore remembers the id of the process that built it, and
+//! [`install`] in another process builds a fresh pool for that process. The stale pool
+//! is leaked ([`std::mem::forget`]), never dropped: dropping it would talk to threads
+//! that do not exist in the child. (The only remaining hazard is a fork taken while
+//! another thread holds this module's lock, which is held for microseconds.)
+//!
+//! # Chunking
+//! [`for_each_row_chunk`] splits an output made of equal-length rows into tasks of
+//! whole rows: serial on the calling thread below [`SERIAL_BELOW_BYTES`] or with one
+//! thread, else in the pool, with tasks of about [`TASK_BYTES`] and at least
+//! [`TASKS_PER_THREAD`] tasks per thread. One loop body serves both paths.
+
+use std::sync::{Arc, Mutex, MutexGuard};
+
+use rayon::prelude::*;
+use rayon::{ThreadPool, ThreadPoolBuilder};
+
+use crate::error::{Error, Result};
+
+/// Environment variable holding the default number of threads.
+pub const ENV_NUM_THREADS: &str = "LFCAM_NUM_THREADS";
+
+/// Upper bound accepted by [`set_num_threads`] and [`ENV_NUM_THREADS`].
+pub const MAX_THREADS: usize = 1024;
+
+/// Work whose output is smaller than this many bytes runs serially: below it, waking
+/// the pool costs more than the work (measured with `benches/crop.rs`; a 256 KiB copy
+/// takes ~10 us, the round trip through the pool a few us per thread).
+pub const SERIAL_BELOW_BYTES: usize = 256 * 1024;
+
+/// Target output bytes per parallel task: large enough to amortise task overhead,
+/// small enough (a fraction of L2) to balance load.
+pub const TASK_BYTES: usize = 64 * 1024;
+
+/// Minimum number of tasks per thread, so one slow thread does not hold everyone up.
+pub const TASKS_PER_THREAD: usize = 4;
+
+struct Pool {
+    pool: Arc<ThreadPool>,
+    pid: u32,
+}
+
+struct State {
+    /// The thread count the next pool will have; `None` until first resolved.
+    num_threads: Option<usize>,
+    pool: Option<Pool>,
+}
+
+static STATE: Mutex<State> = Mutex::new(State {
+    num_threads: None,
+    pool: None,
+});
+
+fn lock() -> MutexGuard<'static, State> {
+    // The lock is never held across user code, so poisoning cannot leave the state
+    // half-updated; recover instead of panicking.
+    STATE
+        .lock()
+        .unwrap_or_else(|poisoned| poisoned.into_inner())
+}
+
+/// The default thread count: `LFCAM_NUM_THREADS` if it is an integer in
+/// `1..=MAX_THREADS`, else the available parallelism (1 if unknown).
+fn default_num_threads() -> usize {
+    std::env::var(ENV_NUM_THREADS)
+        .ok()
+        .and_then(|v| v.trim().parse::<usize>().ok())
+        .filter(|n| (1..=MAX_THREADS).contains(n))
+        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
+}
+
+fn check_num_threads(n: usize) -> Result<()> {
+    if (1..=MAX_THREADS).contains(&n) {
+        Ok(())
+    } else {
+        Err(Error::invalid_argument(
+            "n",
+            format!("number of threads must be between 1 and {MAX_THREADS}, got {n}"),
+        ))
+    }
+}
+
+fn build_pool(n: usize) -> Result<Pool> {
+    let pool = ThreadPoolBuilder::new()
+        .num_threads(n)
+        .thread_name(|i| format!("lfcam-{i}"))
+        .build()
+        .map_err(|e| {
+            Error::invalid_argument("n", format!("could not start {n} worker threads: {e}"))
+        })?;
+    Ok(Pool {
+        pool: Arc::new(pool),
+        pid: std::process::id(),
+    })
+}
+
+/// Disposes of a pool that is being replaced: dropped if it belongs to this process,
+/// leaked if it was inherited through `fork()` (its threads do not exist here).
+fn retire(old: Option<Pool>) {
+    if let Some(old) = old {
+        if old.pid != std::process::id() {
+            std::mem::forget(old);
+        }
+    }
+}
+
+/// The pool for this process, built now if there is none or if the existing one was
+/// built in the parent of a fork.
+fn current_pool() -> Result<Arc<ThreadPool>> {
+    let mut state = lock();
+    let pid = std::process::id();
+    if let Some(p) = state.pool.as_ref().filter(|p| p.pid == pid) {
+        return Ok(Arc::clone(&p.pool));
+    }
+    let n = *state.num_threads.get_or_insert_with(default_num_threads);
+    let fresh = build_pool(n)?;
+    let pool = Arc::clone(&fresh.pool);
+    retire(state.pool.replace(fresh));
+    Ok(pool)
+}
+
+/// Number of threads kernels run on: the current pool's, or the one the pool will
+/// have when it is built.
+pub fn num_threads() -> usize {
+    let mut state = lock();
+    *state.num_threads.get_or_insert_with(default_num_threads)
+}
+
+/// Replaces the pool by one with `n` threads (built now, so failure is reported here).
+/// Work already running in the old pool finishes there.
+///
+/// # Errors
+/// [`Error::InvalidArgument`] (argument `"n"`) if `n` is 0 or above [`MAX_THREADS`], or
+/// if the operating system refuses to start the threads.
+pub fn set_num_threads(n: usize) -> Result<()> {
+    check_num_threads(n)?;
+    let fresh = build_pool(n)?;
+    let mut state = lock();
+    state.num_threads = Some(n);
+    retire(state.pool.replace(fresh));
+    Ok(())
+}
+
+/// Runs `f` inside lfcam's pool (building it if needed, and rebuilding it in a forked
+/// child), so that rayon parallel iterators in `f` use that pool. Called from a worker
+/// of the pool, it runs `f` directly.
+///
+/// # Errors
+/// [`Error::InvalidArgument`] (argument `"n"`) if the pool has to be built and the
+/// operating system refuses to start its threads.
+pub fn install<R, F>(f: F) -> Result<R>
+where
+    F: FnOnce() -> R + Send,
+    R: Send,
+{
+    let pool = current_pool()?;
+    Ok(pool.install(f))
+}
+
+/// Rows per task for `n_rows` rows of `row_bytes` bytes on `threads` threads: about
+/// [`TASK_BYTES`] per task, but at least [`TASKS_PER_THREAD`] tasks per thread when
+/// there are enough rows; never 0.
+pub fn rows_per_task(n_rows: usize, row_bytes: usize, threads: usize) -> usize {
+    let by_size = TASK_BYTES.div_ceil(row_bytes.max(1));
+    let by_balance = n_rows.div_ceil(threads.max(1).saturating_mul(TASKS_PER_THREAD));
+    by_size.min(by_balance).max(1)
+}
+
+/// Whether an output of `total_bytes` bytes should be produced serially.
+pub fn run_serially(total_bytes: usize, threads: usize) -> bool {
+    threads <= 1 || total_bytes < SERIAL_BELOW_BYTES
+}
+
+/// Calls `body(first_row, rows)` over `out`, viewed as rows of `row_len` elements, in
+/// tasks of whole rows (`rows.len()` is a multiple of `row_len`; `first_row` is the
+/// index of its first row in `out`). Small outputs run serially on the calling thread,
+/// others in lfcam's pool (see the module docs). The first error returned by `body`
+/// is returned (other tasks may or may not have run).
+///
+/// # Errors
+/// [`Error::InvalidArgument`] (argument `"out"`) if `out.len()` is not a multiple of
+/// `row_len`; the pool's errors ([`install`]); `body`'s errors.
+pub fn for_each_row_chunk<T, F>(out: &mut [T], row_len: usize, body: F) -> Result<()>
+where
+    T: Send,
+    F: Fn(usize, &mut [T]) -> Result<()> + Sync + Send,
+{
+    if out.is_empty() {
+        return Ok(());
+    }
+    if row_len == 0 || out.len() % row_len != 0 {
+        return Err(Error::invalid_argument(
+            "out",
+            format!(
+                "has {} elements, not a whole number of rows of {row_len}",
+                out.len()
+            ),
+        ));
+    }
+    let n_rows = out.len() / row_len;
+    let elem = std::mem::size_of::<T>().max(1);
+    let total_bytes = out.len().saturating_mul(elem);
+    let threads = num_threads();
+    let rows = rows_per_task(n_rows, row_len.saturating_mul(elem), threads);
+    // `rows <= n_rows`, so `rows * row_len <= out.len()`: no overflow, never 0.
+    let chunk = rows * row_len;
+    let task = |(i, rows_out): (usize, &mut [T])| body(i * rows, rows_out);
+    if run_serially(total_bytes, threads) {
+        out.chunks_mut(chunk).enumerate().try_for_each(task)
+    } else {
+        install(|| out.par_chunks_mut(chunk).enumerate().try_for_each(task))?
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rows_per_task_is_never_zero_and_balances() {
+        assert_eq!(rows_per_task(0, 0, 0), 1);
+        assert_eq!(rows_per_task(1, 1, 1), 1);
+        // Big rows: one row per task.
+        assert_eq!(rows_per_task(1000, 1 << 20, 2), 1);
+        // Small rows: ~TASK_BYTES per task.
+        assert_eq!(rows_per_task(100_000, 1024, 2), 64);
+        // Few rows: split for balance instead.
+        assert_eq!(rows_per_task(16, 1024, 2), 2);
+    }
+
+    #[test]
+    fn serial_threshold() {
+        assert!(run_serially(SERIAL_BELOW_BYTES - 1, 8));
+        assert!(!run_serially(SERIAL_BELOW_BYTES, 8));
+        assert!(run_serially(usize::MAX, 1));
+    }
+
+    #[test]
+    fn check_rejects_zero_and_huge() {
+        assert!(check_num_threads(0).is_err());
+        assert!(check_num_threads(MAX_THREADS + 1).is_err());
+        assert!(check_num_threads(1).is_ok());
+        assert!(matches!(
+            set_num_threads(0),
+            Err(Error::InvalidArgument { ref arg, .. }) if arg == "n"
+        ));
+    }
+
+    #[test]
+    fn install_runs_in_lfcam_pool() {
+        let name = install(|| std::thread::current().name().map(str::to_owned)).unwrap();
+        assert!(name.unwrap_or_default().starts_with("lfcam-"));
+        // Nested install from a worker runs inline.
+        let nested = install(|| install(|| rayon::current_thread_index().is_some()).unwrap());
+        assert!(nested.unwrap());
+    }
+
+    #[test]
+    fn row_chunks_cover_every_row_once_serial_and_parallel() {
+        for n_rows in [1usize, 7, 300, 5000] {
+            for row_len in [1usize, 3, 1000] {
+                let mut out = vec![0u32; n_rows * row_len];
+                for_each_row_chunk(&mut out, row_len, |first, rows| {
+                    for (k, row) in rows.chunks_exact_mut(row_len).enumerate() {
+                        row.fill(u32::try_from(first + k).unwrap() + 1);
+                    }
+                    Ok(())
+                })
+                .unwrap();
+                for (r, row) in out.chunks_exact(row_len).enumerate() {
+                    assert!(
+                        row.iter().all(|&v| v as usize == r + 1),
+                        "{n_rows} {row_len}"
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn row_chunks_reject_ragged_output_and_propagate_errors() {
+        let mut out = vec![0u8; 10];
+        assert!(for_each_row_chunk(&mut out, 3, |_, _| Ok(())).is_err());
+        assert!(for_each_row_chunk(&mut out, 0, |_, _| Ok(())).is_err());
+        assert!(for_each_row_chunk(&mut [0u8; 0], 0, |_, _| Ok(())).is_ok());
+        let mut big = vec![0u8; 4 * SERIAL_BELOW_BYTES];
+        let err = for_each_row_chunk(&mut big, 1024, |first, _| {
+            if first >= 512 {
+                Err(Error::Numerical(format!("row {first}")))
+            } else {
+                Ok(())
+            }
+        });
+        assert!(matches!(err, Err(Error::Numerical(_))));
+    }
+}
