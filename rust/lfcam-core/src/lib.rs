@@ -6,6 +6,8 @@
 //! `lfcam-py` crate.
 
 #![forbid(unsafe_code)]
+// Kernels must not panic on user data: no unchecked indexing outside tests.
+#![warn(clippy::indexing_slicing)]
 
 pub mod crop;
 pub mod error;

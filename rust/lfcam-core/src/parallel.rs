@@ -35,9 +35,9 @@ pub const ENV_NUM_THREADS: &str = "LFCAM_NUM_THREADS";
 /// Upper bound accepted by [`set_num_threads`] and [`ENV_NUM_THREADS`].
 pub const MAX_THREADS: usize = 1024;
 
-/// Work whose output is smaller than this many bytes runs serially: below it, waking
-/// the pool costs more than the work (measured with `benches/crop.rs`; a 256 KiB copy
-/// takes ~10 us, the round trip through the pool a few us per thread).
+/// Work whose output is smaller than this many bytes runs serially: there, a copy takes
+/// on the order of 10 us, comparable to waking the pool's threads and joining them. A
+/// starting value, to be tuned per kernel with its criterion bench.
 pub const SERIAL_BELOW_BYTES: usize = 256 * 1024;
 
 /// Target output bytes per parallel task: large enough to amortise task overhead,
@@ -109,10 +109,10 @@ fn build_pool(n: usize) -> Result<Pool> {
 /// Disposes of a pool that is being replaced: dropped if it belongs to this process,
 /// leaked if it was inherited through `fork()` (its threads do not exist here).
 fn retire(old: Option<Pool>) {
-    if let Some(old) = old {
-        if old.pid != std::process::id() {
-            std::mem::forget(old);
-        }
+    if let Some(old) = old
+        && old.pid != std::process::id()
+    {
+        std::mem::forget(old);
     }
 }
 
@@ -200,7 +200,7 @@ where
     if out.is_empty() {
         return Ok(());
     }
-    if row_len == 0 || out.len() % row_len != 0 {
+    if row_len == 0 || !out.len().is_multiple_of(row_len) {
         return Err(Error::invalid_argument(
             "out",
             format!(

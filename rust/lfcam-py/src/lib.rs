@@ -1,1 +1,31 @@
-//! placeholder
+//! `lfcam._lfcam`: the Python extension module over `lfcam-core`.
+//!
+//! Thin by design: each `#[pyfunction]` borrows its numpy inputs ([`arrays`]), allocates
+//! its output as a numpy array, releases the GIL, runs one core kernel inside lfcam's
+//! thread pool and maps errors and panics to the `lfcam.errors` family ([`errors`]).
+//! Kernels live in `lfcam-core`.
+
+mod arrays;
+mod crop;
+mod errors;
+mod threads;
+
+use pyo3::prelude::*;
+
+/// Rust core of lfcam. Use the public functions of the `lfcam` package instead.
+#[pymodule(name = "_lfcam")]
+mod lfcam_ext {
+    use pyo3::prelude::*;
+
+    #[pymodule_export]
+    use crate::crop::crop_lenslets;
+    #[pymodule_export]
+    use crate::errors::{_panic_for_test, _raise_core_error};
+    #[pymodule_export]
+    use crate::threads::{get_num_threads, set_num_threads};
+
+    #[pymodule_init]
+    fn init(m: &Bound<'_, PyModule>) -> PyResult<()> {
+        m.add("__version__", env!("CARGO_PKG_VERSION"))
+    }
+}

@@ -1,0 +1,112 @@
+//! Core errors and panics as exceptions of the `lfcam.errors` family.
+
+use std::any::Any;
+use std::panic::{AssertUnwindSafe, catch_unwind};
+
+use lfcam_core::Error;
+use pyo3::prelude::*;
+use pyo3::sync::PyOnceLock;
+use pyo3::types::PyType;
+
+/// One exception class of `lfcam.errors`, imported on first use and cached.
+struct ErrorClass {
+    name: &'static str,
+    cell: PyOnceLock<Py<PyType>>,
+}
+
+impl ErrorClass {
+    const fn new(name: &'static str) -> Self {
+        Self {
+            name,
+            cell: PyOnceLock::new(),
+        }
+    }
+
+    /// An instance of the class with `message`; if `lfcam.errors` cannot be imported,
+    /// the import error instead.
+    fn err(&'static self, py: Python<'_>, message: String) -> PyErr {
+        match self.cell.import(py, "lfcam.errors", self.name) {
+            Ok(class) => PyErr::from_type(class.clone(), message),
+            Err(import_error) => import_error,
+        }
+    }
+}
+
+static LFCAM_ERROR: ErrorClass = ErrorClass::new("LfcamError");
+static INPUT_ERROR: ErrorClass = ErrorClass::new("InputError");
+static CALIBRATION_ERROR: ErrorClass = ErrorClass::new("CalibrationError");
+static NUMERICAL_ERROR: ErrorClass = ErrorClass::new("NumericalError");
+
+/// `lfcam.InputError(message)`: for checks done in the bindings themselves.
+pub fn input_error(py: Python<'_>, arg: &str, reason: impl std::fmt::Display) -> PyErr {
+    INPUT_ERROR.err(py, format!("{arg}: {reason}"))
+}
+
+/// The exception a core error becomes: the message is the error's `Display`.
+pub fn to_pyerr(py: Python<'_>, err: Error) -> PyErr {
+    let class = match &err {
+        Error::InvalidArgument { .. } | Error::InvalidItem { .. } => &INPUT_ERROR,
+        Error::Calibration(_) => &CALIBRATION_ERROR,
+        Error::Numerical(_) => &NUMERICAL_ERROR,
+        // `Error` is `#[non_exhaustive]`, so this arm is required outside lfcam-core. A
+        // variant added to the core without a class here still reaches Python as the
+        // family's base class; add its arm here (and to `_raise_core_error`).
+        _ => &LFCAM_ERROR,
+    };
+    class.err(py, err.to_string())
+}
+
+fn panic_message(payload: &(dyn Any + Send)) -> &str {
+    payload
+        .downcast_ref::<&str>()
+        .copied()
+        .or_else(|| payload.downcast_ref::<String>().map(String::as_str))
+        .unwrap_or("unknown panic payload")
+}
+
+/// Runs `f`, turning a panic into `lfcam.LfcamError("internal error in <function>:
+/// <message>; please report this")` instead of pyo3's `PanicException` (which derives
+/// from `BaseException` and escapes `except Exception`). Every binding's body runs
+/// in here.
+pub fn guarded<R>(py: Python<'_>, function: &str, f: impl FnOnce() -> PyResult<R>) -> PyResult<R> {
+    catch_unwind(AssertUnwindSafe(f)).unwrap_or_else(|payload| {
+        Err(LFCAM_ERROR.err(
+            py,
+            format!(
+                "internal error in {function}: {}; please report this",
+                panic_message(payload.as_ref())
+            ),
+        ))
+    })
+}
+
+/// Private test hook: raises the exception that the core error variant `kind`
+/// (`"InvalidArgument"`, `"InvalidItem"`, `"Calibration"` or `"Numerical"`) maps to.
+#[pyfunction]
+pub fn _raise_core_error(py: Python<'_>, kind: &str) -> PyResult<()> {
+    guarded(py, "_raise_core_error", || {
+        let err = match kind {
+            "InvalidArgument" => Error::invalid_argument("arg", "test InvalidArgument"),
+            "InvalidItem" => Error::invalid_item("arg", 7, "test InvalidItem"),
+            "Calibration" => Error::Calibration("test Calibration".into()),
+            "Numerical" => Error::Numerical("test Numerical".into()),
+            other => {
+                return Err(input_error(
+                    py,
+                    "kind",
+                    format!("unknown core error variant {other:?}"),
+                ));
+            }
+        };
+        Err(to_pyerr(py, err))
+    })
+}
+
+/// Private test hook: panics inside [`guarded`], which must raise `LfcamError`.
+#[pyfunction]
+#[allow(clippy::panic)]
+pub fn _panic_for_test(py: Python<'_>) -> PyResult<()> {
+    guarded(py, "_panic_for_test", || {
+        panic!("deliberate panic for testing")
+    })
+}
