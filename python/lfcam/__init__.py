@@ -1,0 +1,28 @@
+"""lfcam: multiview light-field camera processing.
+
+Raw frames from a camera with one front lens and an array of large lenslets become
+rectified views, metric depth, super-resolved, refocused and novel-view images. The
+per-pixel work runs in a Rust core (``lfcam._lfcam``) on lfcam's own thread pool; see
+:func:`set_num_threads` and the ``LFCAM_NUM_THREADS`` environment variable.
+"""
+
+from lfcam._lfcam import __version__, get_num_threads, set_num_threads
+from lfcam.crop import crop_lenslets
+from lfcam.errors import CalibrationError, InputError, LfcamError, NumericalError
+
+# --- Simulation (simulate.py, pattern.py): exports to be added here. ---------------
+# from lfcam.simulate import simulate
+# from lfcam.pattern import make_pattern
+# ------------------------------------------------------------------------------------
+
+__all__ = [
+    "CalibrationError",
+    "InputError",
+    "LfcamError",
+    "NumericalError",
+    "__version__",
+    "crop_lenslets",
+    "get_num_threads",
+    "set_num_threads",
+    # --- Simulation exports go here. ---
+]
