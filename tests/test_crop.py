@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import doctest
+
 import numpy as np
 import pytest
 
 import lfcam
+import lfcam.crop
+import lfcam.errors
 from lfcam import _lfcam
 
 DTYPES = [np.uint8, np.uint16, np.float32]
@@ -189,3 +193,10 @@ def test_unallocatable_output_raises_memory_error() -> None:
     rects = np.tile(np.array([0, 0, 1920, 1080], np.int64), (100_000, 1))
     with pytest.raises(MemoryError):
         lfcam.crop_lenslets(raw, rects)
+
+
+@pytest.mark.parametrize("module", [lfcam.crop, lfcam.errors])
+def test_docstring_examples(module: object) -> None:
+    result = doctest.testmod(module, optionflags=doctest.NORMALIZE_WHITESPACE)  # type: ignore[arg-type]
+    assert result.attempted > 0
+    assert result.failed == 0
