@@ -9,20 +9,22 @@ per-pixel work runs in a Rust core (``lfcam._lfcam``) on lfcam's own thread pool
 from lfcam._lfcam import __version__, get_num_threads, set_num_threads
 from lfcam.crop import crop_lenslets
 from lfcam.errors import CalibrationError, InputError, LfcamError, NumericalError
-
-# --- Simulation (simulate.py, pattern.py): exports to be added here. ---------------
-# from lfcam.simulate import simulate
-# from lfcam.pattern import make_pattern
-# ------------------------------------------------------------------------------------
+from lfcam.io import read_image
+from lfcam.pattern import make_pattern
+from lfcam.simulator import SimConfig, SimulationResult, simulate
 
 __all__ = [
     "CalibrationError",
     "InputError",
     "LfcamError",
     "NumericalError",
+    "SimConfig",
+    "SimulationResult",
     "__version__",
     "crop_lenslets",
     "get_num_threads",
+    "make_pattern",
+    "read_image",
     "set_num_threads",
-    # --- Simulation exports go here. ---
+    "simulate",
 ]

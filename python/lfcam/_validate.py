@@ -15,7 +15,7 @@ from numpy.typing import DTypeLike, NDArray
 
 from lfcam.errors import InputError
 
-__all__ = ["as_image", "as_int_array"]
+__all__ = ["as_image", "as_int_array", "check_positive_int"]
 
 
 def _dtype_list(dtypes: Sequence[np.dtype[Any]]) -> str:
@@ -111,3 +111,19 @@ def as_int_array(
     if arr.dtype == np.uint64 and arr.size and int(arr.max()) > np.iinfo(np.int64).max:
         raise InputError(f"{name}: values do not fit in int64")
     return np.ascontiguousarray(arr, dtype=np.int64)
+
+
+def check_positive_int(value: Any, name: str, *, minimum: int = 1) -> int:
+    """Return ``value`` as an ``int`` if it is an integer >= ``minimum``.
+
+    Raises
+    ------
+    InputError
+        If ``value`` is not an integer (booleans and floats are refused) or is
+        smaller than ``minimum``.
+    """
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise InputError(f"{name}: expected an integer >= {minimum}, got {value!r}")
+    if value < minimum:
+        raise InputError(f"{name}: expected an integer >= {minimum}, got {value}")
+    return int(value)

@@ -1,0 +1,216 @@
+"""The ``lfcam`` command line: parse, report progress, set exit codes.
+
+Exit codes: 0 success, 2 bad input (a clear message names the file or
+argument), 1 an unexpected internal error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from .errors import InputError, LfcamError
+
+EXIT_OK = 0
+EXIT_INTERNAL = 1
+EXIT_INPUT = 2
+
+
+def _pair(text: str, sep: str, name: str) -> tuple[int, int]:
+    parts = text.lower().split(sep)
+    try:
+        a, b = (int(p) for p in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"{name}: expected two integers as A{sep}B, got {text!r}"
+        ) from None
+    return a, b
+
+
+def _floats(text: str) -> tuple[float, ...]:
+    try:
+        return tuple(float(t) for t in text.split(",") if t.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated numbers, got {text!r}"
+        ) from None
+
+
+def _progress(total: int, desc: str) -> Any:
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, unit="step", file=sys.stderr, disable=None, leave=False)
+
+
+# ---------------------------------------------------------------------------
+# lfcam simulate
+# ---------------------------------------------------------------------------
+def _add_simulate(sub: Any) -> None:
+    p = sub.add_parser(
+        "simulate",
+        help="simulate a camera: calibration captures and scenes with ground truth",
+        description=(
+            "Render a simulated light-field camera (DESIGN.md section 1): a calibration "
+            "folder (pattern, white and board captures) and scene captures, with ground "
+            "truth (warp maps, o_i, Z_c, depth, 2x reference image). Camera parameters "
+            "come from --config (TOML, keys as in lfcam.SimConfig) and the flags below, "
+            "which override it."
+        ),
+    )
+    p.add_argument("out_dir", type=Path, help="output folder (must be new or empty)")
+    p.add_argument("--config", type=Path, help="TOML file of camera parameters")
+    p.add_argument("--seed", type=int, help="random seed (default 0)")
+    p.add_argument("--grid", type=lambda t: _pair(t, "x", "--grid"), help="lenslet grid, e.g. 3x4")
+    p.add_argument(
+        "--view-size",
+        type=lambda t: _pair(t, "x", "--view-size"),
+        help="width x height of one view in raw pixels, e.g. 480x360",
+    )
+    p.add_argument(
+        "--full-size", action="store_true", help="the full-size camera: 1200x900 px views"
+    )
+    p.add_argument("--bit-depth", type=int, choices=(8, 16), help="raw bit depth")
+    p.add_argument("--bayer", choices=("RGGB", "BGGR", "GRBG", "GBRG"), help="Bayer raw")
+    p.add_argument("--format", dest="raw_format", choices=("png", "tiff"), help="raw file format")
+    p.add_argument("--scenes", help="comma-separated scenes: planes, spheres, layered, board")
+    p.add_argument("--distances", type=_floats, help="board distances in metres, e.g. 0.8,1,1.25")
+    p.add_argument("--captures", type=int, help="board captures per distance (default 5)")
+    p.add_argument("--no-truth", action="store_true", help="skip the ground truth")
+    p.add_argument("--overwrite", action="store_true", help="replace a non-empty out_dir")
+    p.set_defaults(func=_cmd_simulate)
+
+
+def _cmd_simulate(args: argparse.Namespace) -> int:
+    from .simulator import SimConfig, simulate
+
+    changes: dict[str, Any] = {}
+    if args.full_size:
+        changes["view_size"] = (1200, 900)
+    for key in ("seed", "grid", "view_size", "bit_depth", "bayer", "raw_format", "distances"):
+        value = getattr(args, key)
+        if value is not None:
+            changes[key] = value
+    if args.scenes is not None:
+        changes["scenes"] = tuple(s.strip() for s in args.scenes.split(",") if s.strip())
+    if args.captures is not None:
+        changes["captures_per_distance"] = args.captures
+    if args.config is not None:
+        cfg = SimConfig.from_toml(args.config, **changes)
+    else:
+        cfg = SimConfig.from_dict({}, source="command line", **changes)
+    steps = 4 + len(cfg.distances) + len(cfg.scenes) + (0 if args.no_truth else 1)
+    t0 = time.perf_counter()
+    with _progress(steps, "simulate") as bar:
+
+        def step(msg: str) -> None:
+            bar.set_postfix_str(msg)
+            bar.update(1)
+
+        res = simulate(
+            args.out_dir, cfg, overwrite=args.overwrite, truth=not args.no_truth, progress=step
+        )
+    cam = res.camera
+    print(f"simulated a {cfg.grid[0]}x{cfg.grid[1]} camera in {time.perf_counter() - t0:.1f} s")
+    print(
+        f"  raw frames      {cam.W_raw} x {cam.H_raw}, {cfg.bit_depth}-bit"
+        f"{', Bayer ' + cfg.bayer if cfg.bayer else ' RGB'}"
+    )
+    print(
+        f"  rectified frame {cam.W_rect} x {cam.H_rect} px, Z_b = {cam.z_b:g} m, "
+        f"Z_c = {cam.z_c:.4f} m"
+    )
+    print(f"  calibration     {res.calibration_dir}")
+    for name, path in res.captures.items():
+        print(f"  capture         {path}  ({name})")
+    if not args.no_truth:
+        print(f"  ground truth    {res.truth_dir}")
+    return EXIT_OK
+
+
+# ---------------------------------------------------------------------------
+# lfcam pattern
+# ---------------------------------------------------------------------------
+def _add_pattern(sub: Any) -> None:
+    p = sub.add_parser(
+        "pattern",
+        help="write the digital calibration pattern",
+        description=(
+            "Write the calibration pattern: dense multi-scale texture with a cross at the "
+            "centre. Show it full screen on a monitor at native resolution (one pattern "
+            "pixel per screen pixel), or print it unscaled on a rigid flat board; the "
+            "size of one pattern pixel on the board in metres is the pattern pitch."
+        ),
+    )
+    p.add_argument("out", type=Path, help="output image (.png, .tif or .tiff)")
+    p.add_argument("--width", type=int, required=True, help="width in pixels")
+    p.add_argument("--height", type=int, required=True, help="height in pixels")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.set_defaults(func=_cmd_pattern)
+
+
+def _cmd_pattern(args: argparse.Namespace) -> int:
+    from .io import write_image_atomic
+    from .pattern import make_pattern
+
+    img = make_pattern(args.width, args.height, seed=args.seed)
+    write_image_atomic(args.out, img)
+    print(f"wrote {args.out} ({args.width} x {args.height}, seed {args.seed})")
+    return EXIT_OK
+
+
+# ---------------------------------------------------------------------------
+def build_parser() -> argparse.ArgumentParser:
+    """The ``lfcam`` argument parser (all subcommands)."""
+    from . import __version__
+
+    parser = argparse.ArgumentParser(
+        prog="lfcam",
+        description="Multiview light-field camera: simulate, calibrate, process.",
+    )
+    parser.add_argument("--version", action="version", version=f"lfcam {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    _add_simulate(sub)
+    _add_pattern(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the ``lfcam`` command line; returns the exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return EXIT_INPUT
+    try:
+        code: int = args.func(args)
+        return code
+    except InputError as exc:
+        print(f"lfcam {args.command}: error: {exc}", file=sys.stderr)
+        return EXIT_INPUT
+    except OSError as exc:
+        print(f"lfcam {args.command}: error: {exc}", file=sys.stderr)
+        return EXIT_INPUT
+    except KeyboardInterrupt:
+        print(f"lfcam {args.command}: interrupted", file=sys.stderr)
+        return 130
+    except LfcamError as exc:
+        print(f"lfcam {args.command}: error: {exc}", file=sys.stderr)
+        return EXIT_INTERNAL
+    except Exception as exc:  # a bug: say so plainly, with a hint for reporting
+        if os.environ.get("LFCAM_DEBUG"):
+            raise
+        print(
+            f"lfcam {args.command}: internal error: {type(exc).__name__}: {exc}\n"
+            "  (set LFCAM_DEBUG=1 for the traceback, and please report it)",
+            file=sys.stderr,
+        )
+        return EXIT_INTERNAL
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

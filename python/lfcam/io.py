@@ -1,0 +1,114 @@
+"""Image files: the one module that reads and writes them.
+
+Images are numpy arrays in (row, col, channel) order with RGB channel order
+(OpenCV's BGR is converted at this boundary). PNG and TIFF keep 8 and 16 bits;
+float32 goes to TIFF.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .errors import InputError
+
+__all__ = ["read_image", "write_image", "write_image_atomic"]
+
+_WRITABLE = {".png", ".tif", ".tiff"}
+_READABLE = {".png", ".tif", ".tiff", ".jpg", ".jpeg"}
+
+
+def read_image(path: str | os.PathLike[str]) -> np.ndarray:
+    """Read a PNG, TIFF or JPEG image without changing its bit depth.
+
+    Parameters
+    ----------
+    path : path-like
+        The image file.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(H, W)`` for grey or Bayer, ``(H, W, 3)`` RGB otherwise (an alpha
+        channel is dropped); uint8, uint16 or float32 as stored.
+
+    Raises
+    ------
+    lfcam.InputError
+        If the file is missing, has an unsupported extension or cannot be decoded.
+    """
+    p = Path(path)
+    if p.suffix.lower() not in _READABLE:
+        raise InputError(f"{p}: unsupported image type {p.suffix!r} (use PNG, TIFF or JPEG)")
+    if not p.is_file():
+        raise InputError(f"{p}: no such file")
+    if p.suffix.lower() in (".tif", ".tiff"):
+        import tifffile
+
+        try:
+            img = tifffile.imread(p)
+        except Exception as exc:
+            raise InputError(f"{p}: not a readable TIFF ({exc})") from None
+    else:
+        img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise InputError(f"{p}: not a readable image (corrupt or truncated?)")
+        if img.ndim == 3:
+            img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGB if img.shape[2] == 4 else cv2.COLOR_BGR2RGB)
+    if img.ndim == 3 and img.shape[2] == 4:
+        img = img[..., :3]
+    if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] != 3):
+        raise InputError(f"{p}: expected a grey or RGB image, got shape {img.shape}")
+    if img.dtype not in (np.uint8, np.uint16, np.float32):
+        raise InputError(f"{p}: unsupported pixel type {img.dtype} (use 8/16-bit or float32)")
+    return np.ascontiguousarray(img)
+
+
+def write_image(path: str | os.PathLike[str], img: np.ndarray, *, compression: int = 3) -> None:
+    """Write ``img`` (grey or RGB; uint8/uint16 to PNG or TIFF, float32 to TIFF)."""
+    p = Path(path)
+    ext = p.suffix.lower()
+    if ext not in _WRITABLE:
+        raise InputError(f"{p}: unsupported output type {p.suffix!r} (use .png, .tif or .tiff)")
+    img = np.asarray(img)
+    if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] not in (1, 3)):
+        raise InputError(f"{p}: cannot write an image of shape {img.shape}")
+    if ext == ".png":
+        if img.dtype not in (np.uint8, np.uint16):
+            raise InputError(f"{p}: PNG holds 8 or 16-bit integers, not {img.dtype}")
+        arr = img if img.ndim == 2 else img[..., ::-1]
+        ok = cv2.imwrite(
+            str(p), np.ascontiguousarray(arr), [cv2.IMWRITE_PNG_COMPRESSION, compression]
+        )
+        if not ok:
+            raise OSError(f"{p}: could not write PNG")
+    else:
+        import tifffile
+
+        tifffile.imwrite(
+            p, img, photometric="rgb" if img.ndim == 3 and img.shape[2] == 3 else "minisblack"
+        )
+
+
+def write_image_atomic(path: str | os.PathLike[str], img: np.ndarray, **kw: int) -> None:
+    """:func:`write_image` to a temporary name beside ``path``, then rename.
+
+    A failed write never leaves a half-written ``path`` behind.
+    """
+    p = Path(path)
+    if p.suffix.lower() not in _WRITABLE:
+        raise InputError(f"{p}: unsupported output type {p.suffix!r} (use .png, .tif or .tiff)")
+    if not p.parent.is_dir():
+        raise InputError(f"{p}: folder {p.parent} does not exist")
+    fd, tmp = tempfile.mkstemp(prefix=f".{p.stem}.", suffix=p.suffix, dir=p.parent)
+    os.close(fd)
+    try:
+        write_image(tmp, img, **kw)
+        os.replace(tmp, p)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
