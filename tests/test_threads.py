@@ -23,8 +23,10 @@ def restore_threads() -> Iterator[None]:
     lfcam.set_num_threads(before)
 
 
-def _threads_in_subprocess(env_value: str) -> int:
-    env = {**os.environ, "LFCAM_NUM_THREADS": env_value}
+def _threads_in_subprocess(env_value: str | None) -> int:
+    env = {k: v for k, v in os.environ.items() if k != "LFCAM_NUM_THREADS"}
+    if env_value is not None:
+        env["LFCAM_NUM_THREADS"] = env_value
     out = subprocess.run(
         [sys.executable, "-c", "import lfcam; print(lfcam.get_num_threads())"],
         env=env,
@@ -42,8 +44,11 @@ def test_env_var_sets_the_thread_count() -> None:
 
 
 @pytest.mark.parametrize("value", ["0", "-2", "many", ""])
-def test_bad_env_var_falls_back_to_the_core_count(value: str) -> None:
-    assert _threads_in_subprocess(value) == (os.cpu_count() or 1)
+def test_bad_env_var_falls_back_to_the_default(value: str) -> None:
+    # The default is the available parallelism (CPU affinity and cgroup quota aware).
+    default = _threads_in_subprocess(None)
+    assert 1 <= default <= (os.cpu_count() or 1)
+    assert _threads_in_subprocess(value) == default
 
 
 def test_set_num_threads(restore_threads: None) -> None:

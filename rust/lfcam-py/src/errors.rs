@@ -42,6 +42,14 @@ pub fn input_error(py: Python<'_>, arg: &str, reason: impl std::fmt::Display) ->
     INPUT_ERROR.err(py, format!("{arg}: {reason}"))
 }
 
+/// `lfcam.LfcamError` for a broken invariant of lfcam itself (not the caller's fault).
+pub fn internal_error(py: Python<'_>, function: &str, detail: impl std::fmt::Display) -> PyErr {
+    LFCAM_ERROR.err(
+        py,
+        format!("internal error in {function}: {detail}; please report this"),
+    )
+}
+
 /// The exception a core error becomes: the message is the error's `Display`.
 pub fn to_pyerr(py: Python<'_>, err: Error) -> PyErr {
     let class = match &err {
@@ -70,12 +78,10 @@ fn panic_message(payload: &(dyn Any + Send)) -> &str {
 /// in here.
 pub fn guarded<R>(py: Python<'_>, function: &str, f: impl FnOnce() -> PyResult<R>) -> PyResult<R> {
     catch_unwind(AssertUnwindSafe(f)).unwrap_or_else(|payload| {
-        Err(LFCAM_ERROR.err(
+        Err(internal_error(
             py,
-            format!(
-                "internal error in {function}: {}; please report this",
-                panic_message(payload.as_ref())
-            ),
+            function,
+            panic_message(payload.as_ref()),
         ))
     })
 }
