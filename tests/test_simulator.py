@@ -135,7 +135,7 @@ def test_crops_and_centres_are_consistent() -> None:
     assert crops.shape == (12, 4)
     assert len({(int(w), int(h)) for w, h in crops[:, 2:]}) == 1
     w, h = crops[0, 2:]
-    assert 0.9 * 480 < w <= 480
+    assert 0.8 * 480 < w <= 480
     assert 0.9 * 360 < h <= 360
     assert (crops[:, 0] >= 0).all()
     assert (crops[:, 1] >= 0).all()
@@ -143,7 +143,14 @@ def test_crops_and_centres_are_consistent() -> None:
     assert (crops[:, 1] + h <= cam.H_raw).all()
     centres = cam.centres()
     mid = crops[:, :2] + crops[:, 2:] / 2.0
-    assert np.abs(centres - mid).max() < 25.0  # the optical centre is near the crop centre
+    assert np.abs(centres - mid).max() < 25.0  # the circle is near the crop centre
+    # Non-axial distortion moves the visible circle's centre off the optical centre,
+    # by a few pixels: a small error of the optical-centre route of DESIGN.md 4.
+    off = np.linalg.norm(centres - cam.optical_centres(), axis=1)
+    assert 0.3 < np.median(off) < 12.0
+    # The circle is clipped by the baffle at the top and bottom, not at the sides.
+    r_px = cam.circle_radius / cam.pixel_pitch
+    assert 360 / 2 < r_px < 480 / 2  # cell of 480 x 360 px
 
 
 def test_board_depth_truth_is_exact() -> None:

@@ -95,7 +95,8 @@ class SimConfig:
         Reference view (row, col); default the view nearest the array centre,
         ``((R - 1) // 2, (C - 1) // 2)``: (1, 1) for 3 x 4, as in the paper.
     image_circle : float
-        Image-circle radius as a fraction of the cell's half diagonal.
+        Image-circle radius as a fraction of the cell's half diagonal (0.7: the
+        circle is clipped by the baffle at the top and bottom of each cell).
     baffle_gap : float
         Dark gap between neighbouring cells, fraction of the cell size per side.
     lenslet_jitter : float
@@ -144,7 +145,7 @@ class SimConfig:
     lenslet_to_sensor: float = 0.055
     cell_width: float = 6.0e-3
     reference: tuple[int, int] | None = None
-    image_circle: float = 0.94
+    image_circle: float = 0.70
     baffle_gap: float = 0.03
     lenslet_jitter: float = 0.01
     rotation_jitter_deg: float = 0.8
@@ -588,18 +589,78 @@ class SimulatedCamera:
         return self.actual_from_ideal(i, self.pp[i])
 
     # -- truth for calibration ----------------------------------------------------
+    def lit_boxes(self) -> np.ndarray:
+        """Bounding boxes ``(left, top, right, bottom)`` of each view's lit region.
+
+        In continuous raw-pixel coordinates (pixel ``x`` spans ``x +- 0.5``): the
+        part of the (distorted) image circle inside the baffle.
+        """
+        t = np.linspace(0.0, 2 * np.pi, 4096, endpoint=False)
+        ring = self.circle_radius * np.stack([np.cos(t), np.sin(t)], 1)
+        s = np.linspace(0.0, 1.0, 2049)
+        out = np.empty((self.N, 4))
+        for i in range(self.N):
+            bx0, by0, bx1, by1 = self.baffle[i]
+            a = self.actual_from_ideal(i, self.pp[i] + ring)
+            with np.errstate(invalid="ignore"):
+                a = a[(a[:, 0] >= bx0) & (a[:, 0] <= bx1) & (a[:, 1] >= by0) & (a[:, 1] <= by1)]
+            edges = np.concatenate(
+                [
+                    np.stack([bx0 + (bx1 - bx0) * s, np.full_like(s, by0)], 1),
+                    np.stack([bx0 + (bx1 - bx0) * s, np.full_like(s, by1)], 1),
+                    np.stack([np.full_like(s, bx0), by0 + (by1 - by0) * s], 1),
+                    np.stack([np.full_like(s, bx1), by0 + (by1 - by0) * s], 1),
+                ]
+            )
+            q = self.ideal_from_actual(i, edges)
+            inside = ((q - self.pp[i]) ** 2).sum(1) <= self.circle_radius**2
+            pts = self.raw_from_sensor(np.concatenate([a, edges[inside]]))
+            out[i] = [pts[:, 0].min(), pts[:, 1].min(), pts[:, 0].max(), pts[:, 1].max()]
+        return out
+
     def crops(self) -> np.ndarray:
-        """True crop rectangles ``(x0, y0, w, h)``: whole pixels inside each baffle."""
-        bl = self.raw_from_sensor(self.baffle[:, :2])
-        br = self.raw_from_sensor(self.baffle[:, 2:])
-        w = int(np.floor((br - bl)[:, 0].min())) - 1
-        h = int(np.floor((br - bl)[:, 1].min())) - 1
-        x0 = np.ceil(bl[:, 0] + 0.5 - 1e-9).astype(np.int64)
-        y0 = np.ceil(bl[:, 1] + 0.5 - 1e-9).astype(np.int64)
+        """True crop rectangles ``(x0, y0, w, h)``, all of one size.
+
+        The rule a measurement can follow: each crop is centred on its view's lit
+        bounding box (:meth:`lit_boxes`); the common size is the smallest box's,
+        less one pixel, so every crop's pixels lie whole inside their lit box.
+        """
+        box = self.lit_boxes()
+        w = int(np.floor((box[:, 2] - box[:, 0]).min())) - 1
+        h = int(np.floor((box[:, 3] - box[:, 1]).min())) - 1
+        x0 = np.round((box[:, 0] + box[:, 2]) / 2 - (w - 1) / 2).astype(np.int64)
+        y0 = np.round((box[:, 1] + box[:, 3]) / 2 - (h - 1) / 2).astype(np.int64)
         return np.stack([x0, y0, np.full_like(x0, w), np.full_like(y0, h)], 1)
 
+    @property
+    def circle_radius(self) -> float:
+        """Image-circle radius on the sensor (ideal coordinates), metres."""
+        return self.aperture_radius * self.g / self.D
+
     def centres(self) -> np.ndarray:
-        """True image-circle centres in raw pixels (the optical centres)."""
+        """True image-circle centres in raw pixels, as a measurement can define them.
+
+        The circle (the front aperture seen through the pinhole) is distorted and
+        partly hidden by the baffle: its centre is the least-squares circle
+        through the visible part of its edge. With non-axial distortion this is
+        a few pixels from the optical centre (:meth:`optical_centres`).
+        """
+        t = np.linspace(0.0, 2 * np.pi, 1440, endpoint=False)
+        ring = self.circle_radius * np.stack([np.cos(t), np.sin(t)], 1)
+        out = np.empty((self.N, 2))
+        for i in range(self.N):
+            a = self.actual_from_ideal(i, self.pp[i] + ring)
+            bx0, by0, bx1, by1 = self.baffle[i]
+            with np.errstate(invalid="ignore"):
+                vis = (a[:, 0] > bx0) & (a[:, 0] < bx1) & (a[:, 1] > by0) & (a[:, 1] < by1)
+            xy = self.raw_from_sensor(a[vis])
+            A = np.column_stack([2 * xy, np.ones(len(xy))])
+            sol = np.linalg.lstsq(A, (xy**2).sum(1), rcond=None)[0]
+            out[i] = sol[:2]
+        return out
+
+    def optical_centres(self) -> np.ndarray:
+        """Raw-pixel position of the ray through the front lens centre, per view."""
         return np.stack(
             [self.raw_from_sensor(self.optical_centre_sensor(i)) for i in range(self.N)]
         )
@@ -1192,6 +1253,7 @@ def simulate(
                 rect_pitch=np.array(cam.rect_pitch),
                 crops=cam.crops(),
                 centres=cam.centres(),
+                optical_centres=cam.optical_centres(),
                 warps=warps,
                 masks=masks,
                 offsets=cam.offsets,
