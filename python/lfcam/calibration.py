@@ -1,0 +1,942 @@
+"""The :class:`Calibration` type and its file, ``.lfcal`` (HDF5).
+
+A calibration holds everything processing needs from the once-per-camera calibration
+(DESIGN.md sections 2, 4 and 6). It is validated when it is built, before it is saved
+and when it is loaded, by one function, so an invalid calibration cannot exist in
+memory or on disk. Loading never runs code from the file: only numbers, plain strings
+and a JSON document are read.
+
+File layout, format 1.0
+-----------------------
+One HDF5 file, readable with any HDF5 library (h5py, MATLAB ``h5read``, Julia HDF5.jl,
+the C API). Shapes below are in C (row-major) order, as h5py and C see them; MATLAB and
+Julia show the dimensions reversed. ``N = R * C`` views, ``K`` board distances, and
+``C_g`` gain channels (1 or 3). Strings are variable-length UTF-8. Every dataset has a
+``description`` attribute saying what it holds.
+
+Root attributes (strings):
+
+====================  ===================================================================
+``format``            ``"lfcam-calibration"``
+``format_version``    ``"MAJOR.MINOR"``, ``"1.0"`` here. A reader refuses a newer MAJOR;
+                      a newer MINOR only adds datasets, which older readers ignore.
+``software_version``  the lfcam version that wrote the file
+``created``           ISO-8601 UTC time of writing, e.g. ``2026-05-01T12:00:00+00:00``
+====================  ===================================================================
+
+Datasets at the root, one per field of :class:`Calibration` (no groups, no others):
+
+=================  =======  ======================  =======================================
+name               dtype    shape                   meaning
+=================  =======  ======================  =======================================
+``grid``           int64    (2,)                    R, C: lenslet rows, columns
+``reference``      int64    ()                      reference view index ``i = r * C + c``
+``raw_shape``      int64    (2,)                    H_raw, W_raw of the raw frames
+``rect_shape``     int64    (2,)                    H_rect, W_rect of the rectified frame
+``pattern_shape``  int64    (2,)                    H_pat, W_pat of the digital pattern
+``scale``          float64  ()                      rectified px per pattern px (> 0)
+``crops``          int64    (N, 4)                  x0, y0, w, h of each view, raw px
+``centres``        float64  (N, 2)                  x, y image-circle centres, raw px
+``warps``          float32  (N, H_rect, W_rect, 2)  x, y position in view i's crop of each
+                                                    rectified pixel; NaN only where masked
+``masks``          uint8    (N, H_rect, W_rect)     1 where view i sees the rectified pixel
+``offsets``        float64  (N, 2)                  o_i, rectified px (metric mode), or
+                                                    ``d_i = o_i Z_b / Z_c`` (relative mode)
+``z_b``            float64  ()                      reference board distance, m (> 0)
+``z_c``            float64  ()                      lenslet-centre depth, m; NaN if relative
+``metric``         uint8    ()                      1: metric depth; 0: relative depth
+``distances``      float64  (K,)                    board distances used, m (Z_b among them)
+``pattern_pitch``  float64  ()                      metres per pattern px; NaN if unknown
+``gains``          float32  (H_raw, W_raw, C_g)     multiplier of the raw frame (scaled to
+                                                    [0, 1]); 0 where masked
+``bayer``          string   ()                      ``RGGB``, ``BGGR``, ``GRBG``, ``GBRG``,
+                                                    or ``""`` for none
+``report``         string   ()                      the calibration report, a JSON object
+=================  =======  ======================  =======================================
+
+``warps``, ``masks`` and ``gains`` are chunked (at most 256 x 256 pixels, one view per
+chunk) and stored with the shuffle, gzip (level 4) and Fletcher-32 checksum filters,
+all built into HDF5. A reader also accepts any integer dtype for the int64 datasets,
+any float or integer dtype for the float ones, and 0/1 integers or booleans for
+``masks`` and ``metric``; lfcam converts them to the dtypes above.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import re
+import secrets
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, NoReturn
+
+import h5py  # type: ignore[import-untyped]
+import numpy as np
+from numpy.typing import NDArray
+
+from ._lfcam import __version__
+from .errors import CalibrationError, InputError
+
+__all__ = ["BAYER_PATTERNS", "FORMAT_NAME", "FORMAT_VERSION", "Calibration", "file_hash", "info"]
+
+FORMAT_NAME = "lfcam-calibration"
+"""The root ``format`` attribute of every ``.lfcal`` file."""
+
+FORMAT_VERSION = (1, 0)
+"""(MAJOR, MINOR) of the file format this module writes and reads (and older MINORs)."""
+
+BAYER_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
+"""The accepted values of :attr:`Calibration.bayer` (besides None)."""
+
+# Datasets stored chunked + compressed + checksummed.
+_COMPRESSED = ("warps", "masks", "gains")
+_GZIP_LEVEL = 4
+_CHUNK_PX = 256
+
+_DESCRIPTIONS = {
+    "grid": "R, C: lenslet rows, columns",
+    "reference": "reference view index i = r*C + c",
+    "raw_shape": "H_raw, W_raw of the raw frames, px",
+    "rect_shape": "H_rect, W_rect of the rectified frame, px",
+    "pattern_shape": "H_pat, W_pat of the digital calibration pattern, px",
+    "scale": "rectified px per pattern px",
+    "crops": "(N, 4) x0, y0, w, h of each view's crop, raw px",
+    "centres": "(N, 2) x, y image-circle centre of each view, raw px",
+    "warps": "(N, H_rect, W_rect, 2) x, y in view i's crop of each rectified pixel; "
+    "NaN only where masks is 0",
+    "masks": "(N, H_rect, W_rect) 1 where view i sees the rectified pixel, else 0",
+    "offsets": "(N, 2) parallax vector o_i in rectified px (metric mode) or "
+    "d_i = o_i*Z_b/Z_c (relative mode); zero for the reference view",
+    "z_b": "reference board distance Z_b, m",
+    "z_c": "object-space lenslet-centre depth Z_c, m; NaN in relative mode",
+    "metric": "1: depth in metres; 0: relative depth t = s*Z_c/Z_b",
+    "distances": "(K,) board distances used in calibration, m",
+    "pattern_pitch": "metres per pattern pixel on the board; NaN if unknown",
+    "gains": "(H_raw, W_raw, C) multiplier of the raw frame scaled to [0, 1]; 0 where masked",
+    "bayer": "Bayer pattern of the raw frames (RGGB, BGGR, GRBG, GBRG) or empty for none",
+    "report": "calibration report, a JSON object",
+}
+
+# The datasets of a format-1.x file: every field but software_version (a root attribute).
+_DATASETS = tuple(_DESCRIPTIONS)
+_STRING_DATASETS = ("bayer", "report")
+_SCALAR_DATASETS = ("reference", "scale", "z_b", "z_c", "metric", "pattern_pitch")
+# dtype kinds a numeric dataset or field may have (b: bool, i/u: integers, f: floats).
+_INT_KINDS = "iu"
+_FLOAT_KINDS = "fiu"
+_BOOL_KINDS = "biu"
+_KINDS = {
+    "grid": _INT_KINDS,
+    "reference": _INT_KINDS,
+    "raw_shape": _INT_KINDS,
+    "rect_shape": _INT_KINDS,
+    "pattern_shape": _INT_KINDS,
+    "crops": _INT_KINDS,
+    "masks": _BOOL_KINDS,
+    "metric": _BOOL_KINDS,
+}  # every other numeric dataset: _FLOAT_KINDS
+
+_VERSION_RE = re.compile(r"^\s*(\d+)\.(\d+)\s*$")
+
+
+# --------------------------------------------------------------------------- validation
+
+
+def _expected_shapes(
+    grid: tuple[int, int], raw_shape: tuple[int, int], rect_shape: tuple[int, int]
+) -> dict[str, tuple[tuple[int | None, ...], str]]:
+    """Expected shape (``None``: any length) and its symbolic form, for every array."""
+    n = grid[0] * grid[1]
+    hr, wr = rect_shape
+    h, w = raw_shape
+    return {
+        "grid": ((2,), "(2,)"),
+        "raw_shape": ((2,), "(2,)"),
+        "rect_shape": ((2,), "(2,)"),
+        "pattern_shape": ((2,), "(2,)"),
+        "crops": ((n, 4), "(N, 4)"),
+        "centres": ((n, 2), "(N, 2)"),
+        "warps": ((n, hr, wr, 2), "(N, H_rect, W_rect, 2)"),
+        "masks": ((n, hr, wr), "(N, H_rect, W_rect)"),
+        "offsets": ((n, 2), "(N, 2)"),
+        "distances": ((None,), "(K,)"),
+        "gains": ((h, w, None), "(H_raw, W_raw, C) with C = 1 or 3"),
+        **dict.fromkeys(_SCALAR_DATASETS, ((), "() (a scalar)")),
+    }
+
+
+def _check_shape(
+    name: str,
+    shape: tuple[int, ...],
+    expected: tuple[tuple[int | None, ...], str],
+    where: str,
+) -> None:
+    want, symbolic = expected
+    ok = len(shape) == len(want) and all(e is None or e == s for e, s in zip(want, shape))
+    if name == "gains" and ok:
+        ok = shape[2] in (1, 3)
+    if name == "distances" and ok:
+        ok = shape[0] >= 1
+    if not ok:
+        letter = {"distances": "K", "gains": "C"}.get(name, "?")
+        shown = tuple(letter if e is None else e for e in want)
+        raise CalibrationError(
+            f"{where}: {name}: expected shape {symbolic} = {_fmt_shape(shown)}, "
+            f"got {_fmt_shape(shape)}"
+        )
+
+
+def _fmt_shape(shape: tuple[Any, ...]) -> str:
+    return "(" + ", ".join(str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"
+
+
+def _check_kind(name: str, dtype: np.dtype[Any], where: str) -> None:
+    kinds = _KINDS.get(name, _FLOAT_KINDS)
+    if dtype.kind not in kinds or dtype.fields is not None:
+        what = {
+            _INT_KINDS: "integers",
+            _FLOAT_KINDS: "numbers",
+            _BOOL_KINDS: "booleans or 0/1 integers",
+        }[kinds]
+        raise CalibrationError(f"{where}: {name}: expected {what}, got dtype {dtype}")
+
+
+def _as_array(value: Any, name: str, where: str) -> NDArray[Any]:
+    try:
+        arr = np.asarray(value)
+    except (TypeError, ValueError) as e:
+        raise CalibrationError(f"{where}: {name}: not an array ({e})") from None
+    _check_kind(name, arr.dtype, where)
+    return arr
+
+
+def _int_pair(value: Any, name: str, where: str) -> tuple[int, int]:
+    arr = _as_array(value, name, where)
+    _check_shape(name, arr.shape, ((2,), "(2,)"), where)
+    a, b = (int(v) for v in arr.tolist())
+    if a < 1 or b < 1:
+        raise CalibrationError(f"{where}: {name}: expected two integers >= 1, got ({a}, {b})")
+    return a, b
+
+
+def _scalar(value: Any, name: str, where: str) -> Any:
+    if isinstance(value, (bool, np.bool_)) and _KINDS.get(name) != _BOOL_KINDS:
+        raise CalibrationError(f"{where}: {name}: expected a number, got {value!r}")
+    arr = _as_array(value, name, where)
+    if arr.ndim != 0:
+        raise CalibrationError(f"{where}: {name}: expected a scalar, got shape {arr.shape}")
+    return arr[()].item()
+
+
+def _float(value: Any, name: str, where: str) -> float:
+    return float(_scalar(value, name, where))
+
+
+def _first_bad(bad: NDArray[np.bool_]) -> tuple[int, ...]:
+    return tuple(int(i) for i in np.argwhere(bad)[0])
+
+
+def _validate(values: Mapping[str, Any], where: str) -> dict[str, Any]:
+    """Check every field of a calibration and return them in their canonical types.
+
+    The one validator, used by :meth:`Calibration.__post_init__`, :meth:`Calibration.save`
+    and :meth:`Calibration.load`. Arrays come back C-contiguous in their documented
+    dtypes (the same object if it already is), scalars as Python numbers, ``report``
+    as a fresh JSON round trip.
+
+    Raises
+    ------
+    CalibrationError
+        ``"{where}: {field}: {problem}"`` for the first problem found.
+    """
+    out: dict[str, Any] = {}
+
+    def fail(msg: str) -> NoReturn:
+        raise CalibrationError(f"{where}: {msg}")
+
+    # Sizes first: every expected shape follows from them.
+    grid = _int_pair(values["grid"], "grid", where)
+    raw_shape = _int_pair(values["raw_shape"], "raw_shape", where)
+    rect_shape = _int_pair(values["rect_shape"], "rect_shape", where)
+    pattern_shape = _int_pair(values["pattern_shape"], "pattern_shape", where)
+    out.update(grid=grid, raw_shape=raw_shape, rect_shape=rect_shape, pattern_shape=pattern_shape)
+    n = grid[0] * grid[1]
+    shapes = _expected_shapes(grid, raw_shape, rect_shape)
+
+    def array(name: str, dtype: type[np.generic]) -> NDArray[Any]:
+        arr = _as_array(values[name], name, where)
+        _check_shape(name, arr.shape, shapes[name], where)
+        with np.errstate(over="ignore", invalid="ignore"):
+            return np.ascontiguousarray(arr, dtype=dtype)
+
+    reference = _scalar(values["reference"], "reference", where)
+    if not 0 <= reference < n:
+        fail(f"reference: view index {reference} is out of range for a {grid[0]} x {grid[1]} grid")
+    out["reference"] = int(reference)
+
+    scale = _float(values["scale"], "scale", where)
+    if not (math.isfinite(scale) and scale > 0):
+        fail(f"scale: expected a finite number > 0, got {scale}")
+    out["scale"] = scale
+
+    crops = array("crops", np.int64)
+    sizes = {(int(w), int(h)) for w, h in crops[:, 2:].tolist()}
+    if len(sizes) != 1:
+        fail(f"crops: every view must have the same w, h; got {sorted(sizes)}")
+    h_raw, w_raw = raw_shape
+    for i, (x0, y0, w, h) in enumerate(crops.tolist()):
+        if w < 1 or h < 1:
+            fail(f"crops: view {i}: empty crop w={w}, h={h}")
+        if x0 < 0 or y0 < 0 or x0 > w_raw - w or y0 > h_raw - h:
+            fail(
+                f"crops: view {i} (x0={x0}, y0={y0}, w={w}, h={h}) lies outside the "
+                f"{w_raw} x {h_raw} (W x H) raw frame"
+            )
+    out["crops"] = crops
+
+    for name in ("centres", "offsets"):
+        arr = array(name, np.float64)
+        bad = ~np.isfinite(arr)
+        if bad.any():
+            i, j = _first_bad(bad)
+            fail(f"{name}: view {i} has a non-finite value {arr[i, j]} (NaN or inf)")
+        out[name] = arr
+    ref_offset = out["offsets"][out["reference"]]
+    if np.any(ref_offset != 0):
+        fail(
+            f"offsets: the reference view's offset must be (0, 0), got "
+            f"({ref_offset[0]}, {ref_offset[1]}) for view {out['reference']}"
+        )
+
+    raw_masks = _as_array(values["masks"], "masks", where)
+    _check_shape("masks", raw_masks.shape, shapes["masks"], where)
+    if raw_masks.dtype.kind != "b" and not np.all((raw_masks == 0) | (raw_masks == 1)):
+        fail("masks: expected only 0 and 1 (or False and True)")
+    masks = np.ascontiguousarray(raw_masks, dtype=np.bool_)
+    out["masks"] = masks
+
+    # A float64 value too large for float32 becomes inf here and is refused below.
+    warps = array("warps", np.float32)
+    bad = masks & ~np.isfinite(warps).all(axis=-1)
+    if bad.any():
+        i, v, u = _first_bad(bad)
+        fail(
+            f"warps: view {i} has NaN or inf at rectified pixel (u={u}, v={v}) where masks is "
+            f"True; NaN is allowed only where masks is False"
+        )
+    out["warps"] = warps
+
+    z_b = _float(values["z_b"], "z_b", where)
+    if not (math.isfinite(z_b) and z_b > 0):
+        fail(f"z_b: expected a finite distance > 0 m, got {z_b}")
+    out["z_b"] = z_b
+
+    metric = _scalar(values["metric"], "metric", where)
+    if metric not in (0, 1):
+        fail(f"metric: expected True/False (1/0), got {metric!r}")
+    out["metric"] = bool(metric)
+
+    z_c = _float(values["z_c"], "z_c", where)
+    if out["metric"]:
+        if not (math.isfinite(z_c) and 0 <= z_c < z_b):
+            fail(f"z_c: metric mode needs a finite 0 <= z_c < z_b = {z_b} m, got {z_c}")
+    elif not math.isnan(z_c):
+        fail(f"z_c: must be NaN in relative mode (metric is False), got {z_c}")
+    out["z_c"] = z_c
+
+    distances = array("distances", np.float64)
+    if not (np.isfinite(distances).all() and (distances > 0).all()):
+        fail(f"distances: expected finite distances > 0 m, got {distances.tolist()}")
+    if not np.isclose(distances, z_b, rtol=1e-9, atol=0.0).any():
+        fail(f"distances: z_b = {z_b} m is not among the board distances {distances.tolist()}")
+    out["distances"] = distances
+
+    pitch = _float(values["pattern_pitch"], "pattern_pitch", where)
+    if not (math.isnan(pitch) or (math.isfinite(pitch) and pitch > 0)):
+        fail(f"pattern_pitch: expected a finite number > 0 m, or NaN if unknown, got {pitch}")
+    out["pattern_pitch"] = pitch
+
+    gains = array("gains", np.float32)
+    finite = np.isfinite(gains)
+    if not finite.all():
+        y, x, c = _first_bad(~finite)
+        fail(f"gains: non-finite value {gains[y, x, c]} at raw pixel (x={x}, y={y}), channel {c}")
+    if (gains < 0).any():
+        y, x, c = _first_bad(gains < 0)
+        fail(f"gains: negative value {gains[y, x, c]} at raw pixel (x={x}, y={y}), channel {c}")
+    out["gains"] = gains
+
+    bayer = values["bayer"]
+    if bayer is not None and (not isinstance(bayer, str) or bayer not in BAYER_PATTERNS):
+        fail(f"bayer: expected None or one of {', '.join(BAYER_PATTERNS)}, got {bayer!r}")
+    out["bayer"] = bayer
+
+    report = values["report"]
+    if not isinstance(report, dict):
+        fail(f"report: expected a dict (a JSON object), got {type(report).__name__}")
+    try:
+        text = json.dumps(report, allow_nan=False, ensure_ascii=False)
+    except (TypeError, ValueError, RecursionError) as e:
+        fail(f"report: not JSON-serialisable ({e}); use None, not NaN, for missing numbers")
+    out["report"] = json.loads(text)
+
+    version = values["software_version"]
+    if not isinstance(version, str) or not version.strip():
+        fail(f"software_version: expected a non-empty string, got {version!r}")
+    out["software_version"] = version
+    return out
+
+
+# --------------------------------------------------------------------------- the type
+
+
+@dataclass(eq=False)
+class Calibration:
+    """Everything processing needs from a camera's calibration (DESIGN.md section 4).
+
+    Built by the calibration steps, saved with :meth:`save` and read back with
+    :meth:`load`. Every field is validated on construction (and again by :meth:`save`,
+    in case a field was changed since); arrays are converted to the dtypes below.
+    ``N = R * C`` views, view ``i = r * C + c``.
+
+    Attributes
+    ----------
+    grid : tuple of int
+        ``(R, C)`` lenslet rows and columns.
+    reference : int
+        Reference view index; depth and products are in its rectified frame.
+    raw_shape, rect_shape, pattern_shape : tuple of int
+        ``(H, W)`` of the raw frames, the rectified frame and the digital pattern.
+    scale : float
+        Rectified pixels per pattern pixel, > 0.
+    crops : numpy.ndarray of int64, shape (N, 4)
+        ``x0, y0, w, h`` of each view's crop in raw pixels; all of the same size and
+        inside the raw frame.
+    centres : numpy.ndarray of float64, shape (N, 2)
+        ``x, y`` image-circle centres in raw pixels.
+    warps : numpy.ndarray of float32, shape (N, H_rect, W_rect, 2)
+        For each rectified pixel, the ``x, y`` position in view i's crop to sample
+        (OpenCV ``remap`` convention). NaN only where ``masks`` is False.
+    masks : numpy.ndarray of bool, shape (N, H_rect, W_rect)
+        Where view i sees the rectified pixel.
+    offsets : numpy.ndarray of float64, shape (N, 2)
+        ``o_i`` in rectified pixels (metric mode) or ``d_i = o_i * Z_b / Z_c``
+        (relative mode); ``offsets[reference]`` is exactly 0.
+    z_b : float
+        Reference board distance ``Z_b``, metres, > 0.
+    z_c : float
+        Object-space lenslet-centre depth ``Z_c``, metres, ``0 <= z_c < z_b``; NaN in
+        relative mode.
+    metric : bool
+        True: depth in metres; False: relative depth ``t = s * Z_c / Z_b``.
+    distances : numpy.ndarray of float64, shape (K,)
+        Board distances used, metres; ``z_b`` is one of them.
+    pattern_pitch : float
+        Metres per pattern pixel on the board; NaN if unknown (then X, Y are not
+        metric).
+    gains : numpy.ndarray of float32, shape (H_raw, W_raw, C)
+        ``C`` is 1 or 3. Multiplier of the raw frame scaled to [0, 1]; finite, >= 0,
+        0 where masked.
+    bayer : str or None
+        None, or the raw frames' Bayer pattern: ``RGGB``, ``BGGR``, ``GRBG``, ``GBRG``.
+    report : dict
+        The calibration report, a JSON object (strict JSON: no NaN; use None). Stored
+        as its JSON round trip, so tuples become lists and keys strings. Headline
+        numbers under ``report["summary"]`` are shown by :meth:`summary`.
+    software_version : str
+        The lfcam version that made the calibration.
+
+    Raises
+    ------
+    CalibrationError
+        If any field breaks a rule above; the message names the field.
+    """
+
+    grid: tuple[int, int]
+    reference: int
+    raw_shape: tuple[int, int]
+    rect_shape: tuple[int, int]
+    pattern_shape: tuple[int, int]
+    scale: float
+    crops: NDArray[np.int64]
+    centres: NDArray[np.float64]
+    warps: NDArray[np.float32]
+    masks: NDArray[np.bool_]
+    offsets: NDArray[np.float64]
+    z_b: float
+    z_c: float
+    metric: bool
+    distances: NDArray[np.float64]
+    pattern_pitch: float
+    gains: NDArray[np.float32]
+    bayer: str | None
+    report: dict[str, Any]
+    software_version: str = __version__
+
+    def __post_init__(self) -> None:
+        self._set(_validate(self._values(), "invalid calibration"))
+
+    def _values(self) -> dict[str, Any]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    def _set(self, values: Mapping[str, Any]) -> None:
+        for name, value in values.items():
+            setattr(self, name, value)
+
+    def __repr__(self) -> str:
+        r, c = self.grid
+        return (
+            f"Calibration(grid=({r}, {c}), reference={self.reference}, "
+            f"raw_shape={self.raw_shape}, rect_shape={self.rect_shape}, "
+            f"metric={self.metric}, z_b={self.z_b}, z_c={self.z_c}, bayer={self.bayer!r})"
+        )
+
+    @property
+    def n_views(self) -> int:
+        """Number of views ``N = R * C``."""
+        return self.grid[0] * self.grid[1]
+
+    @property
+    def reference_rc(self) -> tuple[int, int]:
+        """``(row, col)`` of the reference view in the lenslet grid."""
+        r, c = divmod(self.reference, self.grid[1])
+        return r, c
+
+    # ----------------------------------------------------------------------- writing
+
+    def save(self, path: str | os.PathLike[str]) -> Path:
+        """Write the calibration to an ``.lfcal`` (HDF5) file, atomically.
+
+        The file is written under a temporary name in the same folder and renamed to
+        ``path`` only once complete, so ``path`` is either the old file or the whole
+        new one; on any error the temporary file is removed.
+
+        Parameters
+        ----------
+        path : path-like
+            Destination, conventionally ending in ``.lfcal``. Replaced if it exists.
+
+        Returns
+        -------
+        pathlib.Path
+            ``path``.
+
+        Raises
+        ------
+        CalibrationError
+            If a field was changed since construction and is now invalid.
+        InputError
+            If the destination folder does not exist or ``path`` is a folder.
+        OSError
+            If writing fails (disk full, permissions).
+        """
+        p = Path(path)
+        values = _validate(self._values(), "cannot save calibration")
+        self._set(values)
+        if not p.parent.is_dir():
+            raise InputError(f"{p}: folder {p.parent} does not exist")
+        if p.is_dir():
+            raise InputError(f"{p}: is a folder")
+        tmp = p.with_name(f".{p.name}.{secrets.token_hex(6)}.tmp")
+        try:
+            # "x": create, fail if it exists; permissions follow the umask.
+            with h5py.File(tmp, "x") as f:
+                _write(f, values)
+            with open(tmp, "rb+") as fh:
+                os.fsync(fh.fileno())
+            os.replace(tmp, p)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+        return p
+
+    # ----------------------------------------------------------------------- reading
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str]) -> Calibration:
+        """Read and validate an ``.lfcal`` file.
+
+        Parameters
+        ----------
+        path : path-like
+            A file written by :meth:`save` (or by any program following the layout in
+            this module's docstring).
+
+        Returns
+        -------
+        Calibration
+
+        Raises
+        ------
+        InputError
+            If ``path`` does not exist or is a folder.
+        CalibrationError
+            If the file is not HDF5, is corrupt or truncated (including a failed
+            checksum), is not an lfcam calibration, was written by a newer major
+            format version, lacks a dataset or has an unexpected one, or holds
+            inconsistent data. The message starts with the path and names the
+            dataset or attribute at fault.
+        """
+        values, _ = _read(path)
+        return cls(**values)
+
+    # ----------------------------------------------------------------------- display
+
+    def summary(self) -> str:
+        """A readable multi-line description: sizes, depth model, per-view table, report.
+
+        Returns
+        -------
+        str
+            Aligned text, no trailing newline; what ``lfcam info CAMERA.lfcal`` prints.
+        """
+        r, c = self.grid
+        rr, rc = self.reference_rc
+        h, w = self.raw_shape
+        hr, wr = self.rect_shape
+        hp, wp = self.pattern_shape
+        n_ch = self.gains.shape[2]
+        masked = float(np.mean(np.all(self.gains == 0, axis=2))) * 100
+        if self.metric:
+            mode = "metric (depth Z in metres)"
+            z_c = f"{self.z_c:.6g} m (object-space lenslet-centre depth)"
+        else:
+            mode = "relative (t = s * Z_c / Z_b; Z_c unknown)"
+            z_c = "unknown (relative mode)"
+        pitch = (
+            "unknown (X, Y not metric)"
+            if math.isnan(self.pattern_pitch)
+            else f"{self.pattern_pitch * 1e3:.6g} mm per pattern px"
+        )
+        header = [
+            ("format", f"{FORMAT_NAME} {FORMAT_VERSION[0]}.{FORMAT_VERSION[1]}"),
+            ("software version", self.software_version),
+            ("grid", f"{r} x {c} lenslets ({self.n_views} views)"),
+            ("reference view", f"{self.reference} (row {rr}, col {rc})"),
+            ("raw frame", f"{h} x {w} px (H x W)"),
+            ("rectified frame", f"{hr} x {wr} px (H x W)"),
+            ("pattern", f"{hp} x {wp} px (H x W)"),
+            ("scale", f"{self.scale:.6g} rectified px per pattern px"),
+            ("depth mode", mode),
+            ("Z_b", f"{self.z_b:.6g} m (reference board distance)"),
+            ("Z_c", z_c),
+            ("board distances", ", ".join(f"{d:.6g}" for d in self.distances.tolist()) + " m"),
+            ("pattern pitch", pitch),
+            ("Bayer", self.bayer or "none"),
+            ("gains", f"{n_ch} channel{'s' if n_ch > 1 else ''}, {masked:.1f}% of raw px masked"),
+            ("report", ", ".join(str(k) for k in self.report) or "empty"),
+        ]
+        lines = ["lfcam calibration"]
+        width = max(len(k) for k, _ in header)
+        lines += [f"  {k:<{width}}  {v}" for k, v in header]
+
+        o = "o" if self.metric else "d"
+        coverage = self.masks.reshape(self.n_views, -1).mean(axis=1) * 100
+        rows = []
+        for i in range(self.n_views):
+            x0, y0, cw, ch = self.crops[i].tolist()
+            cx, cy = self.centres[i].tolist()
+            ox, oy = self.offsets[i].tolist()
+            rows.append(
+                [
+                    f"{i}{'*' if i == self.reference else ''}",
+                    str(i // c),
+                    str(i % c),
+                    str(x0),
+                    str(y0),
+                    str(cw),
+                    str(ch),
+                    f"{cx:.2f}",
+                    f"{cy:.2f}",
+                    f"{ox:.3f}",
+                    f"{oy:.3f}",
+                    f"{math.hypot(ox, oy):.3f}",
+                    f"{coverage[i]:.1f}",
+                ]
+            )
+        heads = ["view", "row", "col", "x0", "y0", "w", "h", "centre x", "centre y"]
+        heads += [f"{o}_x", f"{o}_y", f"|{o}|", "coverage %"]
+        unit = "o_i in rectified px" if self.metric else "d_i = o_i Z_b / Z_c in rectified px"
+        lines += ["", f"views (* reference; crops and centres in raw px; {unit})"]
+        lines += _table(heads, rows)
+
+        headline = self.report.get("summary")
+        if isinstance(headline, dict) and headline:
+            lines += ["", "report summary"]
+            kw = max(len(str(k)) for k in headline)
+            lines += [f"  {k!s:<{kw}}  {_fmt_value(v)}" for k, v in headline.items()]
+        return "\n".join(lines)
+
+
+def _fmt_value(v: Any) -> str:
+    if isinstance(v, bool) or v is None:
+        return json.dumps(v)
+    if isinstance(v, float):
+        return f"{v:.6g}"
+    if isinstance(v, (dict, list)):
+        return json.dumps(v, ensure_ascii=False)
+    return str(v)
+
+
+def _table(heads: list[str], rows: list[list[str]]) -> list[str]:
+    widths = [max(len(h), *(len(r[j]) for r in rows)) for j, h in enumerate(heads)]
+    out = ["  " + "  ".join(h.rjust(w) for h, w in zip(heads, widths))]
+    out += ["  " + "  ".join(v.rjust(w) for v, w in zip(r, widths)) for r in rows]
+    return out
+
+
+# --------------------------------------------------------------------------- HDF5 I/O
+
+
+def _write(f: h5py.File, values: Mapping[str, Any]) -> None:
+    f.attrs["format"] = FORMAT_NAME
+    f.attrs["format_version"] = f"{FORMAT_VERSION[0]}.{FORMAT_VERSION[1]}"
+    f.attrs["software_version"] = values["software_version"]
+    f.attrs["created"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
+    for name in _DATASETS:
+        value = values[name]
+        if name == "bayer":
+            data: Any = value or ""
+        elif name == "report":
+            data = json.dumps(value, allow_nan=False, ensure_ascii=False)
+        elif name in ("masks", "metric"):
+            data = np.asarray(value, dtype=np.uint8)
+        elif isinstance(value, tuple) or name == "reference":
+            data = np.asarray(value, dtype=np.int64)
+        elif isinstance(value, float):
+            data = np.float64(value)
+        else:
+            data = value
+        if name in _COMPRESSED:
+            shape = data.shape
+            if name == "gains":  # (H_raw, W_raw, C): tiles of all channels
+                chunks = (min(shape[0], _CHUNK_PX), min(shape[1], _CHUNK_PX), shape[2])
+            else:  # (N, H_rect, W_rect[, 2]): tiles of one view
+                chunks = (1, min(shape[1], _CHUNK_PX), min(shape[2], _CHUNK_PX), *shape[3:])
+            ds = f.create_dataset(
+                name,
+                data=data,
+                chunks=chunks,
+                shuffle=True,
+                compression="gzip",
+                compression_opts=_GZIP_LEVEL,
+                fletcher32=True,
+            )
+        else:
+            ds = f.create_dataset(name, data=data)
+        ds.attrs["description"] = _DESCRIPTIONS[name]
+
+
+def _attr_str(f: h5py.File, name: str, where: str) -> str:
+    """A root attribute that must be a string (variable- or fixed-length, UTF-8 or ASCII)."""
+    if name not in f.attrs:
+        raise CalibrationError(f"{where}: missing root attribute {name!r}")
+    value: Any = f.attrs[name]
+    if isinstance(value, np.ndarray) and value.size == 1 and value.dtype.kind in "OSU":
+        value = value.reshape(-1)[0]  # a one-element string array, as some writers make
+    if isinstance(value, bytes):
+        try:
+            value = value.decode("utf-8")
+        except UnicodeDecodeError:
+            raise CalibrationError(f"{where}: root attribute {name!r} is not UTF-8 text") from None
+    if not isinstance(value, str):
+        raise CalibrationError(f"{where}: root attribute {name!r} is not a string: {value}")
+    return str(value)
+
+
+def _read_header(f: h5py.File, where: str) -> dict[str, Any]:
+    fmt = _attr_str(f, "format", where) if "format" in f.attrs else None
+    if fmt is None:
+        raise CalibrationError(
+            f"{where}: not an lfcam calibration file (HDF5 without a 'format' attribute)"
+        )
+    if fmt != FORMAT_NAME:
+        raise CalibrationError(
+            f"{where}: not an lfcam calibration file: format attribute is {fmt!r}, "
+            f"expected {FORMAT_NAME!r}"
+        )
+    version = _attr_str(f, "format_version", where)
+    m = _VERSION_RE.match(version)
+    if m is None:
+        raise CalibrationError(
+            f"{where}: unreadable format_version {version!r} (expected MAJOR.MINOR, e.g. '1.0')"
+        )
+    major, minor = int(m.group(1)), int(m.group(2))
+    ours = f"{FORMAT_VERSION[0]}.x"
+    if major > FORMAT_VERSION[0]:
+        raise CalibrationError(
+            f"{where}: written by a newer lfcam (format {major}.{minor}); this lfcam "
+            f"reads format {ours}: upgrade lfcam (installed: lfcam {__version__})"
+        )
+    if major < FORMAT_VERSION[0]:
+        raise CalibrationError(
+            f"{where}: unsupported format version {major}.{minor}; this lfcam reads format {ours}"
+        )
+    created = _attr_str(f, "created", where)
+    try:
+        datetime.fromisoformat(created[:-1] + "+00:00" if created.endswith("Z") else created)
+    except ValueError:
+        raise CalibrationError(
+            f"{where}: root attribute 'created' is not an ISO-8601 time: {created!r}"
+        ) from None
+    return {
+        "format_version": (major, minor),
+        "software_version": _attr_str(f, "software_version", where),
+        "created": created,
+    }
+
+
+def _read_dataset(f: h5py.File, name: str, where: str, expected: Any) -> Any:
+    """Read one dataset after checking its kind and shape (so nothing huge or odd is read)."""
+    ds = f[name]
+    if not isinstance(ds, h5py.Dataset):
+        raise CalibrationError(f"{where}: {name}: expected a dataset, found a group")
+    if name in _STRING_DATASETS:
+        if h5py.check_string_dtype(ds.dtype) is None:
+            raise CalibrationError(f"{where}: {name}: expected a string, got dtype {ds.dtype}")
+        if ds.shape != ():
+            raise CalibrationError(
+                f"{where}: {name}: expected a scalar string, got shape {ds.shape}"
+            )
+        try:
+            text = ds.asstr()[()]
+        except UnicodeDecodeError:
+            raise CalibrationError(f"{where}: {name}: not valid UTF-8 text") from None
+        return str(text)
+    _check_kind(name, ds.dtype, where)
+    if expected is not None:
+        _check_shape(name, ds.shape, expected, where)
+    try:
+        return ds[()]
+    except (OSError, ValueError, RuntimeError) as e:
+        hint = ""
+        if "filter returned failure" in str(e):  # HDF5's words for a failed checksum or inflate
+            hint = ": its Fletcher-32 checksum or decompression failed, the file is damaged"
+        raise CalibrationError(
+            f"{where}: corrupt or truncated: cannot read dataset {name!r} ({e}){hint}"
+        ) from None
+
+
+def _parse_report(text: str, where: str) -> Any:
+    def reject(token: str) -> NoReturn:
+        raise ValueError(f"{token} is not valid JSON (use null)")
+
+    try:
+        return json.loads(text, parse_constant=reject)
+    except (ValueError, RecursionError) as e:
+        raise CalibrationError(f"{where}: report: not valid JSON ({e})") from None
+
+
+def _read(path: str | os.PathLike[str]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Read and validate a file: (canonical field values, file header)."""
+    p = Path(path)
+    where = str(p)
+    if not p.exists():
+        raise InputError(f"{p}: no such calibration file")
+    if p.is_dir():
+        raise InputError(f"{p}: is a folder, not a calibration file")
+    try:
+        is_hdf5 = h5py.is_hdf5(p)
+    except OSError as e:
+        raise CalibrationError(f"{where}: cannot read file ({e})") from None
+    if not is_hdf5:
+        raise CalibrationError(f"{where}: not an HDF5 file, so not an lfcam calibration (.lfcal)")
+
+    raw: dict[str, Any] = {}
+    try:
+        with h5py.File(p, "r") as f:
+            header = _read_header(f, where)
+            members = set(f.keys())
+            missing = [name for name in _DATASETS if name not in members]
+            if missing:
+                raise CalibrationError(
+                    f"{where}: missing dataset{'s' if len(missing) > 1 else ''} "
+                    f"{', '.join(repr(m) for m in missing)} (incomplete file)"
+                )
+            extra = sorted(members - set(_DATASETS))
+            if extra and header["format_version"][1] <= FORMAT_VERSION[1]:
+                raise CalibrationError(
+                    f"{where}: unexpected dataset{'s' if len(extra) > 1 else ''} "
+                    f"{', '.join(repr(e) for e in extra)} in a format "
+                    f"{header['format_version'][0]}.{header['format_version'][1]} file"
+                )
+            # Sizes first; then every other dataset's shape is checked before it is read.
+            for name in ("grid", "raw_shape", "rect_shape"):
+                raw[name] = _int_pair(_read_dataset(f, name, where, None), name, where)
+            shapes = _expected_shapes(raw["grid"], raw["raw_shape"], raw["rect_shape"])
+            for name in _DATASETS:
+                if name not in raw:
+                    raw[name] = _read_dataset(f, name, where, shapes.get(name))
+    except (OSError, KeyError, ValueError, RuntimeError) as e:
+        raise CalibrationError(f"{where}: corrupt or truncated: {e}") from None
+
+    raw["bayer"] = raw["bayer"] or None
+    raw["report"] = _parse_report(raw["report"], where)
+    raw["software_version"] = header["software_version"]
+    return _validate(raw, where), header
+
+
+def file_hash(path: str | os.PathLike[str]) -> str:
+    """SHA-256 of a file's bytes, as 64 hex digits.
+
+    Processing outputs record it to say which calibration they used.
+
+    Parameters
+    ----------
+    path : path-like
+        Any file, usually an ``.lfcal``.
+
+    Returns
+    -------
+    str
+
+    Raises
+    ------
+    InputError
+        If ``path`` is not an existing file.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"{p}: no such file")
+    h = hashlib.sha256()
+    with open(p, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def info(path: str | os.PathLike[str]) -> str:
+    """Load an ``.lfcal`` file and describe it: what ``lfcam info CAMERA.lfcal`` prints.
+
+    Parameters
+    ----------
+    path : path-like
+        The calibration file.
+
+    Returns
+    -------
+    str
+        The file's path, format version, creation time and SHA-256, then
+        :meth:`Calibration.summary`.
+
+    Raises
+    ------
+    InputError, CalibrationError
+        As :meth:`Calibration.load`.
+    """
+    values, header = _read(path)
+    cal = Calibration(**values)
+    major, minor = header["format_version"]
+    head = [
+        ("file", str(path)),
+        ("file format", f"{major}.{minor}"),
+        ("created", header["created"]),
+        ("sha256", file_hash(path)),
+    ]
+    width = max(len(k) for k, _ in head)
+    return "\n".join(f"{k:<{width}}  {v}" for k, v in head) + "\n\n" + cal.summary()
