@@ -670,16 +670,18 @@ class SimulatedCamera:
         rho2 = (x0**2).sum(-1) / self.aperture_radius**2
         return np.where(rho2 <= 1.0, 1.0 - self.cfg.vignetting * rho2, 0.0)
 
-    def warps(self, min_vignetting: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
+    def warps(self, margin: float = 1.5) -> tuple[np.ndarray, np.ndarray]:
         """True warp maps and masks.
 
         Returns
         -------
         warps : (N, H_rect, W_rect, 2) float32
-            For each rectified pixel, the x, y position in view i's crop.
+            For each rectified pixel, the x, y position in view i's crop (NaN far
+            outside the view).
         masks : (N, H_rect, W_rect) bool
-            Where view i sees the rectified pixel: inside its crop (with room for
-            bilinear interpolation) and inside its image circle.
+            Where view i sees the rectified pixel: at least ``margin`` raw pixels
+            inside its crop and inside its image circle (so a bilinear sample
+            reads only fully lit pixels).
         """
         crops = self.crops()
         vv, uu = np.mgrid[0 : self.H_rect, 0 : self.W_rect].astype(np.float64)
@@ -687,19 +689,23 @@ class SimulatedCamera:
         P = np.concatenate([B, np.full((*B.shape[:-1], 1), self.z_b)], -1)
         warps = np.empty((self.N, self.H_rect, self.W_rect, 2), np.float32)
         masks = np.empty((self.N, self.H_rect, self.W_rect), bool)
+        r_in = 1.0 - margin * self.pixel_pitch / self.circle_radius
         for i in range(self.N):
             a = self.project(i, P)
             xy = self.raw_from_sensor(a) - crops[i, :2]
             warps[i] = xy
             w, h = crops[i, 2], crops[i, 3]
-            inside = (
-                (xy[..., 0] >= 0)
-                & (xy[..., 0] <= w - 1)
-                & (xy[..., 1] >= 0)
-                & (xy[..., 1] <= h - 1)
-            )
-            vig = self.vignetting(self.lens_point(i, a))
-            masks[i] = inside & (vig >= min_vignetting * (1 - self.cfg.vignetting))
+            lo, hx, hy = margin - 1.0, w - margin, h - margin
+            with np.errstate(invalid="ignore"):
+                inside = (
+                    (xy[..., 0] >= lo)
+                    & (xy[..., 0] <= hx)
+                    & (xy[..., 1] >= lo)
+                    & (xy[..., 1] <= hy)
+                )
+                x0 = self.lens_point(i, a)
+                rho2 = (x0**2).sum(-1) / self.aperture_radius**2
+                masks[i] = inside & (rho2 <= r_in**2)
         return warps, masks
 
 
