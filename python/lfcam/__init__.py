@@ -7,13 +7,18 @@ per-pixel work runs in a Rust core (``lfcam._lfcam``) on lfcam's own thread pool
 """
 
 from lfcam._lfcam import __version__, get_num_threads, set_num_threads
+from lfcam.calibrate import calibrate
+from lfcam.calibration import Calibration
 from lfcam.crop import crop_lenslets
 from lfcam.errors import CalibrationError, InputError, LfcamError, NumericalError
-from lfcam.io import read_image
+from lfcam.io import read_image, read_raw
 from lfcam.pattern import make_pattern
 from lfcam.simulator import SimConfig, SimulationResult, simulate
+from lfcam.stats import nan_median
+from lfcam.warp import rectify, remap_bilinear
 
 __all__ = [
+    "Calibration",
     "CalibrationError",
     "InputError",
     "LfcamError",
@@ -21,10 +26,15 @@ __all__ = [
     "SimConfig",
     "SimulationResult",
     "__version__",
+    "calibrate",
     "crop_lenslets",
     "get_num_threads",
     "make_pattern",
+    "nan_median",
     "read_image",
+    "read_raw",
+    "rectify",
+    "remap_bilinear",
     "set_num_threads",
     "simulate",
 ]

@@ -14,7 +14,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from .errors import InputError, LfcamError
+from .errors import CalibrationError, InputError, LfcamError
 
 EXIT_OK = 0
 EXIT_INTERNAL = 1
@@ -164,6 +164,103 @@ def _cmd_pattern(args: argparse.Namespace) -> int:
 
 
 # ---------------------------------------------------------------------------
+# lfcam calibrate / lfcam info
+# ---------------------------------------------------------------------------
+def _rc(text: str) -> tuple[int, int]:
+    return _pair(text, ",", "--reference")
+
+
+def _add_calibrate(sub: Any) -> None:
+    p = sub.add_parser(
+        "calibrate",
+        help="calibrate a camera from white and board captures",
+        description=(
+            "Calibrate a camera (DESIGN.md section 4) from CAL_DIR: pattern.png, white/*, "
+            "board_<distance>m/* (one or more distances; three or more, or two plus the "
+            "optical centres, give metric depth with no optics known), and an optional "
+            "camera.toml (grid, reference, z_c, pattern_pitch, bayer), which the flags "
+            "override. Writes CAMERA.lfcal, CAMERA.report.json and CAMERA.report.png."
+        ),
+    )
+    p.add_argument("cal_dir", type=Path, help="the calibration folder")
+    p.add_argument("-o", "--output", type=Path, required=True, help="CAMERA.lfcal to write")
+    p.add_argument("--grid", type=lambda t: _pair(t, "x", "--grid"), help="lenslet grid, e.g. 3x4")
+    p.add_argument("--reference", type=_rc, help="reference view ROW,COL (zero-based)")
+    p.add_argument("--reference-distance", type=float, help="Z_b, metres (default: nearest 1 m)")
+    p.add_argument("--scale", type=float, help="rectified px per pattern px (default: ~1 raw px)")
+    p.add_argument("--z-c", type=float, help="Z_c = f D / (D - f) in metres, if known")
+    p.add_argument("--pattern-pitch", type=float, help="metres per pattern pixel on the board")
+    p.add_argument("--bayer", choices=("RGGB", "BGGR", "GRBG", "GBRG"), help="Bayer raw")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing CAMERA.lfcal")
+    p.set_defaults(func=_cmd_calibrate)
+
+
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    from .calibrate import run_calibration
+
+    out: Path = args.output
+    if out.suffix != ".lfcal":
+        out = out.with_name(out.name + ".lfcal")
+    if out.exists() and not args.overwrite:
+        raise InputError(f"{out}: exists (use --overwrite to replace it)")
+    if not out.parent.is_dir():
+        raise InputError(f"{out}: folder {out.parent} does not exist")
+    steps = ["layout", "scale", "warp", "depth"]
+    t0 = time.perf_counter()
+    with _progress(len(steps) + 3, "calibrate") as bar:
+
+        def step(msg: str) -> None:
+            bar.set_postfix_str(msg)
+            bar.update(1)
+
+        run = run_calibration(
+            args.cal_dir,
+            grid=args.grid,
+            reference=args.reference,
+            reference_distance=args.reference_distance,
+            scale=args.scale,
+            z_c=args.z_c,
+            pattern_pitch=args.pattern_pitch,
+            bayer=args.bayer,
+            progress=step,
+        )
+        paths = run.save(out)
+    cal = run.calibration
+    rep = cal.report["summary"]
+    print(f"calibrated a {cal.grid[0]}x{cal.grid[1]} camera in {time.perf_counter() - t0:.1f} s")
+    print(f"  depth            {rep['depth']} ({rep['depth_model_route']})")
+    print(f"  Z_b, Z_c         {cal.z_b:g} m, " + (f"{cal.z_c:.4f} m" if cal.metric else "unknown"))
+    print(f"  rectified frame  {cal.rect_shape[1]} x {cal.rect_shape[0]} px (scale {cal.scale:g})")
+    if rep.get("parallax_fit_rms_px") is not None:
+        print(f"  parallax fit     {rep['parallax_fit_rms_px']:.4f} px rms")
+    print("  view    crop x0, y0, w, h       o_i (rectified px)    frame seen  residual")
+    for v in cal.report["views"]:
+        crop = ", ".join(str(c) for c in v["crop"])
+        o = f"({v['offset_px'][0]:8.3f}, {v['offset_px'][1]:8.3f})"
+        rc = "({}, {})".format(*v["row_col"])
+        print(
+            f"  {rc:7} {crop:23} {o}  {100 * v['coverage']:8.1f} %"
+            f"  {v['photometric_residual_rms']:.3f}"
+        )
+    for k, p in paths.items():
+        print(f"  {k:16} {p}")
+    return EXIT_OK
+
+
+def _add_info(sub: Any) -> None:
+    p = sub.add_parser("info", help="show what is in a calibration file")
+    p.add_argument("calibration", type=Path, help="CAMERA.lfcal")
+    p.set_defaults(func=_cmd_info)
+
+
+def _cmd_info(args: argparse.Namespace) -> int:
+    from .calibration import info
+
+    print(info(args.calibration))
+    return EXIT_OK
+
+
+# ---------------------------------------------------------------------------
 def build_parser() -> argparse.ArgumentParser:
     """The ``lfcam`` argument parser (all subcommands)."""
     from . import __version__
@@ -176,6 +273,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     _add_simulate(sub)
     _add_pattern(sub)
+    _add_calibrate(sub)
+    _add_info(sub)
     return parser
 
 
@@ -198,6 +297,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"lfcam {args.command}: interrupted", file=sys.stderr)
         return 130
+    except CalibrationError as exc:
+        print(f"lfcam {args.command}: error: {exc}", file=sys.stderr)
+        return EXIT_INPUT
     except LfcamError as exc:
         print(f"lfcam {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_INTERNAL

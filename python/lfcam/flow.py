@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-__all__ = ["FlowParams", "dis_flow", "prepare"]
+__all__ = ["FlowParams", "dis_flow", "normalize", "prepare"]
 
 
 @dataclass(frozen=True)
@@ -49,12 +49,10 @@ class FlowParams:
         return dis
 
 
-def prepare(img: np.ndarray, sigma: float = 6.0) -> np.ndarray:
-    """Float image (grey or RGB, NaN = no data) -> contrast-normalised uint8.
+def normalize(img: np.ndarray, sigma: float = 6.0) -> np.ndarray:
+    """Local contrast normalisation: ``(img - local mean) / local std``, float32.
 
-    Subtracts a local mean and divides by a local standard deviation (Gaussian
-    windows of ``sigma`` px), so vignetting, colour casts and exposure do not
-    matter; pixels without data get the neutral value 128.
+    Grey or RGB input (RGB is averaged); NaN stays NaN.
     """
     g = img.mean(axis=2) if img.ndim == 3 else img
     g = g.astype(np.float32)
@@ -67,7 +65,17 @@ def prepare(img: np.ndarray, sigma: float = 6.0) -> np.ndarray:
         mean = m / w
         var = np.maximum(m2 / w - mean * mean, 0.0)
         z = (g0 - mean) / np.sqrt(var + 1e-6)
-    z = np.where(valid & (w > 0.2), z, 0.0)
+    return np.where(valid & (w > 0.2), z, np.nan).astype(np.float32)
+
+
+def prepare(img: np.ndarray, sigma: float = 6.0) -> np.ndarray:
+    """Float image (grey or RGB, NaN = no data) -> contrast-normalised uint8.
+
+    Subtracts a local mean and divides by a local standard deviation (Gaussian
+    windows of ``sigma`` px), so vignetting, colour casts and exposure do not
+    matter; pixels without data get the neutral value 128.
+    """
+    z = np.nan_to_num(normalize(img, sigma), nan=0.0)
     return np.clip(np.round(128.0 + 40.0 * z), 0, 255).astype(np.uint8)
 
 

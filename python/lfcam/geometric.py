@@ -16,6 +16,7 @@ import numpy as np
 
 from .errors import CalibrationError
 from .flow import FlowParams, dis_flow, prepare
+from .stats import nan_median
 
 __all__ = ["ViewRegistration", "coarse_homography", "register_view", "remap", "smooth_map"]
 
@@ -228,8 +229,8 @@ def register_view(
     params: FlowParams | None = None,
     iterations: int = 4,
     smoothing: float = 3.0,
-    max_residual: float = 0.6,
-    erode: int = 1,
+    max_residual: float = 1.0,
+    erode: int = 0,
 ) -> ViewRegistration:
     """Register the pattern to one view from several captures of the board.
 
@@ -272,7 +273,7 @@ def register_view(
     # in which the board moved or something passed in front of it.
     if len(captures) > 1:
         maps = [_refine(pat_u8, c, warp, params, 1, base, hole)[0] for c in captures]
-        warp = np.nanmedian(np.stack(maps), axis=0).astype(np.float32)
+        warp = nan_median(np.stack(maps).astype(np.float32))[0]
     resampled = remap(mean, warp)
     valid = np.isfinite(resampled).all(-1) if resampled.ndim == 3 else np.isfinite(resampled)
     valid &= np.isfinite(warp).all(-1)

@@ -16,7 +16,19 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["read_image", "write_image", "write_image_atomic"]
+__all__ = [
+    "BAYER_PATTERNS",
+    "demosaic",
+    "read_image",
+    "read_raw",
+    "to_float",
+    "write_image",
+    "write_image_atomic",
+]
+
+BAYER_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
+# OpenCV names a Bayer code by the 2x2 block starting at row 1, column 1.
+_CV_BAYER = {"RGGB": "BG", "BGGR": "RG", "GRBG": "GB", "GBRG": "GR"}
 
 _WRITABLE = {".png", ".tif", ".tiff"}
 _READABLE = {".png", ".tif", ".tiff", ".jpg", ".jpeg"}
@@ -108,7 +120,63 @@ def write_image_atomic(path: str | os.PathLike[str], img: np.ndarray, **kw: int)
     os.close(fd)
     try:
         write_image(tmp, img, **kw)
+        mask = os.umask(0)
+        os.umask(mask)
+        os.chmod(tmp, 0o666 & ~mask)
         os.replace(tmp, p)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def demosaic(raw: np.ndarray, pattern: str, *, name: str = "raw") -> np.ndarray:
+    """Demosaic a Bayer frame (OpenCV, bilinear) -> ``(H, W, 3)`` RGB, same dtype.
+
+    ``pattern`` names the colours of the top-left 2x2 block, row by row
+    (``RGGB``: red at (0, 0)).
+    """
+    if pattern not in _CV_BAYER:
+        raise InputError(f"bayer: expected one of {', '.join(BAYER_PATTERNS)}, got {pattern!r}")
+    if raw.ndim != 2:
+        raise InputError(f"{name}: a Bayer frame has one channel, got shape {raw.shape}")
+    if raw.dtype not in (np.uint8, np.uint16):
+        raise InputError(f"{name}: a Bayer frame is 8 or 16-bit, not {raw.dtype}")
+    code = getattr(cv2, f"COLOR_Bayer{_CV_BAYER[pattern]}2RGB")
+    return cv2.cvtColor(np.ascontiguousarray(raw), code)
+
+
+def read_raw(path: str | os.PathLike[str], bayer: str | None = None) -> np.ndarray:
+    """Read a raw capture: grey, RGB, or a Bayer mosaic demosaiced to RGB.
+
+    Parameters
+    ----------
+    path : path-like
+        PNG, TIFF (8/16-bit or float32) or JPEG.
+    bayer : {'RGGB', 'BGGR', 'GRBG', 'GBRG'}, optional
+        The sensor's mosaic, for single-channel Bayer frames.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(H, W)`` or ``(H, W, 3)``, the file's dtype (uint8, uint16 or float32).
+
+    Examples
+    --------
+    >>> raw = lfcam.read_raw("capture.png")                 # doctest: +SKIP
+    >>> raw = lfcam.read_raw("capture.tiff", bayer="RGGB")  # doctest: +SKIP
+    """
+    img = read_image(path)
+    if bayer is not None:
+        if img.ndim != 2:
+            raise InputError(f"{path}: --bayer {bayer} given, but the image has 3 channels")
+        img = demosaic(img, bayer, name=str(path))
+    return img
+
+
+def to_float(raw: np.ndarray) -> np.ndarray:
+    """Raw values -> float32 in [0, 1] (uint8 / 255, uint16 / 65535, float32 as is)."""
+    if raw.dtype == np.uint8:
+        return raw.astype(np.float32) * np.float32(1 / 255)
+    if raw.dtype == np.uint16:
+        return raw.astype(np.float32) * np.float32(1 / 65535)
+    return raw.astype(np.float32, copy=False)

@@ -161,7 +161,7 @@ class SimConfig:
     bit_depth: int = 8
     bayer: str | None = None
     supersample: int = 2
-    distances: tuple[float, ...] = (0.8, 1.0, 1.25)
+    distances: tuple[float, ...] = (0.7, 1.0, 1.5)
     captures_per_distance: int = 5
     white_captures: int = 3
     scenes: tuple[str, ...] = ("planes", "spheres", "layered")

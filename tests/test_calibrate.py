@@ -1,0 +1,225 @@
+"""Calibration against the simulator's ground truth (issue 3), and its bad inputs."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+
+import lfcam
+from lfcam.calibrate import fit_depth_model, run_calibration
+from lfcam.cli import main
+from lfcam.io import read_raw, to_float
+from lfcam.simulator import SimConfig, SimulatedCamera, _Renderer, add_noise, load_truth
+
+
+# --------------------------------------------------------------------------
+# Accuracy: the reference camera (3 x 4, 480 x 360 px views, 8-bit, noise,
+# 3 distances x 5 captures), as the issue specifies.
+# --------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def reference_run(tmp_path_factory):
+    root = tmp_path_factory.mktemp("cal")
+    sim = lfcam.simulate(root / "sim", SimConfig(scenes=()))
+    run = run_calibration(sim.calibration_dir)
+    return sim, run, load_truth(sim.truth_dir / "camera.npz")
+
+
+def test_layout_matches_truth(reference_run) -> None:
+    _, run, truth = reference_run
+    cal = run.calibration
+    assert np.abs(cal.crops - truth["crops"]).max() <= 1
+    assert np.abs(cal.centres - truth["centres"]).max() <= 1.0
+    assert cal.grid == (3, 4)
+    assert cal.reference == 5
+
+
+def test_warp_maps_match_truth(reference_run) -> None:
+    _, run, truth = reference_run
+    cal = run.calibration
+    assert cal.rect_shape == tuple(truth["rect_shape"])
+    errors, covers = [], []
+    for i in range(12):
+        seen = truth["masks"][i]
+        both = cal.masks[i] & seen
+        errors.append(np.linalg.norm(cal.warps[i][both] - truth["warps"][i][both], axis=-1))
+        covers.append(both.sum() / seen.sum())
+        # The mask does not claim pixels the view cannot see (beyond a 1 px rim).
+        assert (cal.masks[i] & ~seen).sum() < 0.01 * seen.sum()
+    e = np.concatenate(errors)
+    rms, p99 = float(np.sqrt(np.mean(e**2))), float(np.percentile(e, 99))
+    assert rms <= 0.10, f"warp RMS {rms:.3f} px"
+    assert p99 <= 0.5, f"warp 99th percentile {p99:.3f} px"
+    assert min(covers) >= 0.95, f"mask coverage {min(covers):.3f}"
+
+
+def test_depth_model_matches_truth(reference_run) -> None:
+    _, run, truth = reference_run
+    cal = run.calibration
+    assert cal.metric
+    o_true = truth["offsets"]
+    n = np.linalg.norm(o_true, axis=1)
+    rel = np.linalg.norm(cal.offsets - o_true, axis=1)[n > 0] / n[n > 0]
+    assert rel.max() <= 0.005, f"o_i relative error {rel.max():.4f}"
+    assert abs(cal.z_c - float(truth["z_c"])) <= 0.01 * float(truth["z_b"])
+    assert cal.z_b == float(truth["z_b"])
+    # The optical-centre route agrees to a few percent (non-axial distortion).
+    route = cal.report["depth_model"]["optical_centre_route"]
+    assert route["centres_vs_fit_rel_median"] < 0.1
+
+
+def test_white_is_neutral_and_flat_after_gains(reference_run) -> None:
+    sim, run, _ = reference_run
+    cal = run.calibration
+    # A fresh white capture (new noise), not one the gains were made from.
+    cam = SimulatedCamera(sim.camera.cfg)
+    clean = _Renderer(cam).render(lfcam.simulator.Scene("white", white=True))
+    raw = add_noise(clean, cam.cfg, np.random.default_rng(12345))
+    flat = to_float(raw) * cal.gains
+    for i, (x0, y0, w, h) in enumerate(cal.crops):
+        m = (cal.gains[y0 : y0 + h, x0 : x0 + w, 0] > 0).astype(np.float32)
+        blk = 16
+        for c in range(3):
+            v = flat[y0 : y0 + h, x0 : x0 + w, c] * m
+            s = cv2.resize(v, (w // blk, h // blk), interpolation=cv2.INTER_AREA)
+            k = cv2.resize(m, (w // blk, h // blk), interpolation=cv2.INTER_AREA)
+            full = k > 0.999
+            assert full.sum() > 50, i
+            means = s[full] / k[full]
+            assert np.abs(means - 1.0).max() < 0.01, (i, c, np.abs(means - 1.0).max())
+    assert (cal.gains[cal.gains[..., 0] == 0] == 0).all()  # masked in every channel
+
+
+def test_save_load_and_report(reference_run, tmp_path, capsys) -> None:
+    _, run, _ = reference_run
+    paths = run.save(tmp_path / "camera.lfcal")
+    loaded = lfcam.Calibration.load(paths["calibration"])
+    np.testing.assert_array_equal(loaded.warps, run.calibration.warps)
+    np.testing.assert_array_equal(loaded.offsets, run.calibration.offsets)
+    report = json.loads(paths["report_json"].read_text())
+    assert report["summary"]["depth"] == "metric"
+    assert len(report["views"]) == 12
+    img = lfcam.read_image(paths["report_png"])
+    assert img.ndim == 3
+    assert img.shape[1] >= 1200
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "camera.lfcal",
+        "camera.report.json",
+        "camera.report.png",
+    ]
+    assert main(["info", str(paths["calibration"])]) == 0
+    out = capsys.readouterr().out
+    assert "3 x 4" in out or "3x4" in out
+
+
+def test_fit_depth_model_recovers_known_values() -> None:
+    rng = np.random.default_rng(0)
+    o = rng.uniform(-30, 30, (12, 2))
+    o[5] = 0
+    z_b, z_c = 1.0, 0.2
+    par = {z: o * (z - z_b) / (z - z_c) for z in (0.6, 1.8)}
+    fit = fit_depth_model(par, z_b)
+    assert fit["z_c"] == pytest.approx(z_c, abs=1e-6)
+    np.testing.assert_allclose(fit["offsets"], o, atol=1e-5)
+    # Two distances are not enough without the optical centres... unless given them.
+    fit2 = fit_depth_model({0.6: par[0.6]}, z_b, centres_rect=o * z_b / z_c)
+    assert fit2["z_c"] == pytest.approx(z_c, abs=1e-5)
+
+
+# --------------------------------------------------------------------------
+# Bad inputs: one clear message naming the file, exit code 2, no .lfcal.
+# --------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def small_cal(tmp_path_factory):
+    cfg = SimConfig(
+        view_size=(200, 150), captures_per_distance=2, white_captures=2, scenes=("layered",), seed=3
+    )
+    return lfcam.simulate(tmp_path_factory.mktemp("small") / "sim", cfg, truth=False)
+
+
+def _copy(small_cal, tmp_path):
+    dst = tmp_path / "cal"
+    shutil.copytree(small_cal.calibration_dir, dst)
+    return dst
+
+
+def _fails(cal_dir, tmp_path, capsys, *words, extra=()):
+    out = tmp_path / "cam.lfcal"
+    code = main(["calibrate", str(cal_dir), "-o", str(out), *extra])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    for w in words:
+        assert w in err, (w, err)
+    assert err.count("\n") <= 2  # one clear message, no traceback
+    assert not list(tmp_path.glob("*.lfcal"))
+    assert not list(tmp_path.glob(".*lfcal*"))
+    return err
+
+
+def test_small_camera_calibrates_from_cli(small_cal, tmp_path, capsys) -> None:
+    out = tmp_path / "cam.lfcal"
+    assert main(["calibrate", str(small_cal.calibration_dir), "-o", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "metric" in text
+    assert "(1, 1)" in text
+    cal = lfcam.Calibration.load(out)
+    assert cal.metric
+    assert cal.masks[cal.reference].mean() > 0.1
+    # Refuses to overwrite without --overwrite.
+    assert main(["calibrate", str(small_cal.calibration_dir), "-o", str(out)]) == 2
+    assert "--overwrite" in capsys.readouterr().err
+
+
+def test_missing_folder(tmp_path, capsys) -> None:
+    _fails(tmp_path / "nope", tmp_path, capsys, "nope", "no such calibration folder")
+
+
+def test_empty_folder_and_missing_parts(small_cal, tmp_path, capsys) -> None:
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    _fails(empty, tmp_path, capsys, "pattern.png")
+    cal = _copy(small_cal, tmp_path)
+    for d in cal.glob("board_*"):
+        shutil.rmtree(d)
+    _fails(cal, tmp_path, capsys, "no board folder")
+
+
+def test_pattern_missing(small_cal, tmp_path, capsys) -> None:
+    cal = _copy(small_cal, tmp_path)
+    (cal / "pattern.png").unlink()
+    _fails(cal, tmp_path, capsys, "pattern.png", "missing")
+
+
+def test_unparsable_distance(small_cal, tmp_path, capsys) -> None:
+    cal = _copy(small_cal, tmp_path)
+    next(cal.glob("board_*")).rename(cal / "board_onem")
+    _fails(cal, tmp_path, capsys, "board_onem", "distance")
+
+
+def test_images_of_different_sizes(small_cal, tmp_path, capsys) -> None:
+    cal = _copy(small_cal, tmp_path)
+    p = sorted((cal / "white").glob("*.png"))[1]
+    img = read_raw(p)
+    lfcam.io.write_image(p, np.ascontiguousarray(img[:-4]))
+    _fails(cal, tmp_path, capsys, p.name, "differs")
+
+
+def test_white_without_the_circles(small_cal, tmp_path, capsys) -> None:
+    cal = _copy(small_cal, tmp_path)
+    _fails(cal, tmp_path, capsys, "white", "3 x 3", extra=("--grid", "3x3"))
+    cal2 = tmp_path / "cal2"
+    shutil.copytree(small_cal.calibration_dir, cal2)
+    for p in (cal2 / "white").glob("*.png"):
+        lfcam.io.write_image(p, np.zeros_like(read_raw(p)))
+    _fails(cal2, tmp_path, capsys, "white", "black")
+
+
+def test_board_capture_of_the_wrong_thing(small_cal, tmp_path, capsys) -> None:
+    cal = _copy(small_cal, tmp_path)
+    scene = read_raw(small_cal.captures["layered"])
+    for p in (cal / "board_1.00m").glob("*.png"):
+        lfcam.io.write_image(p, scene)
+    _fails(cal, tmp_path, capsys, "board_1.00m")
