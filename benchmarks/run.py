@@ -9,6 +9,8 @@ compared once before timing, so a row cannot be fast by being wrong.
     python benchmarks/run.py --size small     # 1920x1080 frames
     python benchmarks/run.py -k crop          # rows whose name contains "crop"
 
+OpenCV runs on as many threads as lfcam (``cv2.setNumThreads``) in every row.
+
 To add a row (rectify, triangulate, ...), write a function that takes the size name and
 returns a :class:`Case`, and decorate it with ``@row("name")``.
 """
@@ -19,6 +21,7 @@ import argparse
 import statistics
 import sys
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -107,6 +110,145 @@ def crop_vs_preallocated(size: str) -> Case:
     return _crop_case(size, threads=None, preallocated=True)
 
 
+# The paper's 3x4 lenslet array. Raw frame (W, H), view crop (w, h), rectified frame.
+_RECTIFY_SIZES = {
+    "small": ((1920, 1080), (480, 360), (810, 540)),
+    "full": ((4800, 2700), (1200, 900), (2000, 1350)),
+}
+
+
+def _rectify_inputs(size: str) -> dict[str, Any]:
+    """A raw RGB u8 frame, vignetting gains (0 on a few dead pixels), 12 crops, and
+    realistic warps: each view sees a shifted (parallax), slightly scaled and smoothly
+    distorted part of the rectified frame; outside its image circle the warp is NaN and
+    the mask False (about 2/3 of each rectified frame)."""
+    (fw, fh), (vw, vh), (rw, rh) = _RECTIFY_SIZES[size]
+    rng = np.random.default_rng(1)
+    raw = rng.integers(0, 256, (fh, fw, 3), dtype=np.uint8)
+    yy, xx = np.mgrid[0:fh, 0:fw].astype(np.float32)
+    gains = np.empty((fh, fw, 3), np.float32)
+    gains[...] = (1 + 0.5 * ((xx % vw - vw / 2) ** 2 + (yy % vh - vh / 2) ** 2) / vw**2)[..., None]
+    gains[rng.random((fh, fw)) < 1e-4] = 0
+    ox, oy = (fw - 4 * vw) // 2, (fh - 3 * vh) // 2
+    crops = np.array([[ox + c * vw, oy + r * vh, vw, vh] for r in range(3) for c in range(4)])
+    v, u = np.mgrid[0:rh, 0:rw].astype(np.float32)
+    warps = np.empty((12, rh, rw, 2), np.float32)
+    masks = np.empty((12, rh, rw), bool)
+    s = vw / 1200
+    for i in range(12):
+        r, c = divmod(i, 4)
+        x = (u - rw / 2 - (c - 1.5) * 120 * s) * 0.9 + vw / 2 + 5 * s * np.sin(v / (300 * s))
+        y = (v - rh / 2 - (r - 1) * 120 * s) * 0.9 + vh / 2 + 5 * s * np.cos(u / (400 * s))
+        m = (np.hypot(x - vw / 2, y - vh / 2) < 0.5 * vh) & (x >= 0) & (x <= vw - 1)
+        m &= (y >= 0) & (y <= vh - 1)
+        x[~m] = np.nan
+        y[~m] = np.nan
+        warps[i, ..., 0], warps[i, ..., 1], masks[i] = x, y, m
+    return {"raw": raw, "gains": gains, "crops": crops, "warps": warps, "masks": masks}
+
+
+def _same_where_defined(atol: float) -> Callable[[Any, Any], bool]:
+    """lfcam's output agrees with the reference wherever lfcam has data (NaN: no data;
+    OpenCV fills such places with 0 or values from beyond the crop)."""
+
+    def same(ours: Any, theirs: Any) -> bool:
+        theirs = np.asarray(theirs).reshape(np.shape(ours))
+        ok = ~np.isnan(ours)
+        return bool(ok.any()) and bool(np.allclose(ours[ok], theirs[ok], rtol=0, atol=atol))
+
+    return same
+
+
+def _rectify_case(size: str, interp: str, flag: int) -> Case:
+    d = _rectify_inputs(size)
+    (fw, fh), _, (rw, rh) = _RECTIFY_SIZES[size]
+    raw, gains, crops, warps, masks = d["raw"], d["gains"], d["crops"], d["warps"], d["masks"]
+
+    def opencv_way() -> list[np.ndarray]:
+        g = raw.astype(np.float32) * np.float32(1 / 255) * gains
+        return [
+            cv2.remap(g[y : y + h, x : x + w], warps[i], None, flag)
+            for i, (x, y, w, h) in enumerate(crops)
+        ]
+
+    return Case(
+        lfcam=lambda: lfcam.rectify(raw, gains, crops, warps, masks, interp=interp),
+        reference=opencv_way,
+        reference_name=f"gain*raw, crop, cv2.remap {'cubic' if flag == cv2.INTER_CUBIC else 'linear'}",
+        shape=f"{fw}x{fh}x3 u8 -> 12x{rw}x{rh}x3, {masks.mean():.0%} kept",
+        same=_same_where_defined(1e-5),
+    )
+
+
+@row("rectify")
+def rectify_bilinear(size: str) -> Case:
+    return _rectify_case(size, "bilinear", cv2.INTER_LINEAR)
+
+
+@row("rectify bicubic")
+def rectify_bicubic(size: str) -> Case:
+    return _rectify_case(size, "bicubic", cv2.INTER_CUBIC)
+
+
+@row("rectify output only")
+def rectify_all_masked(size: str) -> Case:
+    # The floor: every rectified pixel masked, so only the output is written (NaN).
+    d = _rectify_inputs(size)
+    _, _, (rw, rh) = _RECTIFY_SIZES[size]
+    none = np.zeros_like(d["masks"])
+
+    def fill() -> np.ndarray:
+        out = np.empty((12, rh, rw, 3), np.float32)
+        out.fill(np.nan)
+        return out
+
+    return Case(
+        lfcam=lambda: lfcam.rectify(d["raw"], d["gains"], d["crops"], d["warps"], none),
+        reference=fill,
+        reference_name="numpy empty + fill(nan)",
+        shape=f"12x{rw}x{rh}x3 f32, all masked",
+        same=lambda a, b: bool(np.isnan(a).all() and np.isnan(b).all()),
+    )
+
+
+@row("remap_bilinear")
+def remap_vs_opencv(size: str) -> Case:
+    # One view's image resampled to the rectified frame (the warps above).
+    d = _rectify_inputs(size)
+    _, (vw, vh), (rw, rh) = _RECTIFY_SIZES[size]
+    src = np.random.default_rng(2).random((vh, vw, 3), dtype=np.float32)
+    xy = d["warps"][5]
+    return Case(
+        lfcam=lambda: lfcam.remap_bilinear(src, xy),
+        reference=lambda: cv2.remap(src, xy, None, cv2.INTER_LINEAR),
+        reference_name="cv2.remap linear",
+        shape=f"{vw}x{vh}x3 f32 -> {rw}x{rh}",
+        same=_same_where_defined(1e-6),
+    )
+
+
+@row("nan_median")
+def nan_median_vs_numpy(size: str) -> Case:
+    # The robust average of 5 captures' warp maps, 10% NaN.
+    _, _, (rw, rh) = _RECTIFY_SIZES[size]
+    rng = np.random.default_rng(3)
+    stack = rng.normal(0, 300, (5, rh, rw, 2)).astype(np.float32)
+    stack[rng.random(stack.shape) < 0.1] = np.nan
+
+    def numpy_way() -> np.ndarray:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN slices
+            return np.nanmedian(stack, axis=0)
+
+    return Case(
+        lfcam=lambda: lfcam.nan_median(stack)[0],
+        reference=numpy_way,
+        reference_name="np.nanmedian",
+        shape=f"5x{rw}x{rh}x2 f32",
+        same=lambda a, b: bool(np.array_equal(a, b, equal_nan=True)),
+    )
+
+
 # --- harness ------------------------------------------------------------------------
 
 
@@ -133,10 +275,12 @@ def _time_ms(fn: Callable[[], Any]) -> float:
 def run_row(r: Row, size: str, repeats: int) -> Result:
     case = r.make(size)
     default_threads = lfcam.get_num_threads()
+    default_cv2_threads = cv2.getNumThreads()
     if case.threads is not None:
         lfcam.set_num_threads(case.threads)
     try:
         threads = lfcam.get_num_threads()
+        cv2.setNumThreads(threads)
         if not case.same(case.lfcam(), case.reference()):  # also the warm-up call
             raise AssertionError(f"{r.name}: lfcam and {case.reference_name} disagree")
         ours, theirs = [], []
@@ -145,6 +289,7 @@ def run_row(r: Row, size: str, repeats: int) -> Result:
             theirs.append(_time_ms(case.reference))
     finally:
         lfcam.set_num_threads(default_threads)
+        cv2.setNumThreads(default_cv2_threads)
     return Result(
         r.name,
         case.shape,

@@ -11,6 +11,9 @@ __all__ = [
     "_raise_core_error",
     "crop_lenslets",
     "get_num_threads",
+    "nan_median",
+    "rectify",
+    "remap_bilinear",
     "set_num_threads",
 ]
 
@@ -20,6 +23,25 @@ __version__: Final[str]
 
 def crop_lenslets(raw: NDArray[_Pixel], rects: NDArray[np.int64]) -> NDArray[_Pixel]:
     """Crop (N, 4) int64 rects (x0, y0, w, h) out of a C-contiguous (H, W[, C]) raw."""
+
+def remap_bilinear(src: NDArray[np.float32], map: NDArray[np.float32]) -> NDArray[np.float32]:
+    """Sample C-contiguous (H, W[, C]) float32 src at (H', W', 2) map positions (x, y)."""
+
+def rectify(
+    raw: NDArray[_Pixel],
+    gains: NDArray[np.float32],
+    crops: NDArray[np.int64],
+    warps: NDArray[np.float32],
+    masks: NDArray[np.uint8] | None,
+    interp: str,
+    views: NDArray[np.int64] | None,
+) -> NDArray[np.float32]:
+    """Gain, crop and remap views of raw into (M, H, W[, C]) float32 (NaN: no data)."""
+
+def nan_median(
+    stack: NDArray[np.float32],
+) -> tuple[NDArray[np.float32], NDArray[np.uint8] | NDArray[np.uint16]]:
+    """Median over axis 0 of a C-contiguous (K, ...) float32 stack ignoring NaN, and counts."""
 
 def set_num_threads(n: int) -> None:
     """Set the number of threads lfcam's kernels run on (1 to 1024)."""

@@ -13,7 +13,13 @@ pub mod crop;
 pub mod error;
 pub mod image;
 pub mod parallel;
+pub mod rectify;
+pub mod remap;
+pub mod stats;
 
 pub use crate::crop::crop_lenslets;
 pub use crate::error::{Error, Result};
 pub use crate::image::ImageView;
+pub use crate::rectify::{Interp, ViewMaps, rectify};
+pub use crate::remap::remap_bilinear;
+pub use crate::stats::nan_median;

@@ -197,6 +197,25 @@ where
     T: Send,
     F: Fn(usize, &mut [T]) -> Result<()> + Sync + Send,
 {
+    for_each_row_chunk_min(out, row_len, 1, body)
+}
+
+/// [`for_each_row_chunk`] with at least `min_rows` rows per task (fewer only in the
+/// last task): for kernels whose tasks have a setup cost per task, such as a buffer
+/// shared by neighbouring rows. The kernel states and justifies its `min_rows`.
+///
+/// # Errors
+/// As [`for_each_row_chunk`].
+pub fn for_each_row_chunk_min<T, F>(
+    out: &mut [T],
+    row_len: usize,
+    min_rows: usize,
+    body: F,
+) -> Result<()>
+where
+    T: Send,
+    F: Fn(usize, &mut [T]) -> Result<()> + Sync + Send,
+{
     if out.is_empty() {
         return Ok(());
     }
@@ -213,8 +232,10 @@ where
     let elem = std::mem::size_of::<T>().max(1);
     let total_bytes = out.len().saturating_mul(elem);
     let threads = num_threads();
-    let rows = rows_per_task(n_rows, row_len.saturating_mul(elem), threads);
-    // `rows <= n_rows`, so `rows * row_len <= out.len()`: no overflow, never 0.
+    let rows = rows_per_task(n_rows, row_len.saturating_mul(elem), threads)
+        .max(min_rows)
+        .min(n_rows);
+    // `1 <= rows <= n_rows`, so `rows * row_len <= out.len()`: no overflow, never 0.
     let chunk = rows * row_len;
     let task = |(i, rows_out): (usize, &mut [T])| body(i * rows, rows_out);
     if run_serially(total_bytes, threads) {
@@ -224,9 +245,99 @@ where
     }
 }
 
+/// Like [`for_each_row_chunk`] for two outputs with the same number of rows (of
+/// `row_len_a` and `row_len_b` elements): `body(first_row, rows_a, rows_b)` gets the
+/// same rows of both. The chunking policy is the same, counting the bytes of a row of
+/// both outputs together.
+///
+/// # Errors
+/// [`Error::InvalidArgument`] (argument `"out"`) if either output is not a whole number
+/// of rows or if they have different numbers of rows; the pool's errors; `body`'s errors.
+pub fn for_each_row_chunk_pair<A, B, F>(
+    out_a: &mut [A],
+    out_b: &mut [B],
+    row_len_a: usize,
+    row_len_b: usize,
+    body: F,
+) -> Result<()>
+where
+    A: Send,
+    B: Send,
+    F: Fn(usize, &mut [A], &mut [B]) -> Result<()> + Sync + Send,
+{
+    let whole = |len: usize, row_len: usize| {
+        (row_len > 0 && len.is_multiple_of(row_len)).then(|| len / row_len)
+    };
+    let n_rows = match (whole(out_a.len(), row_len_a), whole(out_b.len(), row_len_b)) {
+        (Some(a), Some(b)) if a == b => a,
+        _ => {
+            return Err(Error::invalid_argument(
+                "out",
+                format!(
+                    "outputs of {} and {} elements are not the same number of rows of {row_len_a} \
+                     and {row_len_b}",
+                    out_a.len(),
+                    out_b.len()
+                ),
+            ));
+        }
+    };
+    if n_rows == 0 {
+        return Ok(());
+    }
+    let row_bytes = row_len_a
+        .saturating_mul(std::mem::size_of::<A>())
+        .saturating_add(row_len_b.saturating_mul(std::mem::size_of::<B>()))
+        .max(1);
+    let total_bytes = row_bytes.saturating_mul(n_rows);
+    let threads = num_threads();
+    let rows = rows_per_task(n_rows, row_bytes, threads);
+    let task = |(i, (a, b)): (usize, (&mut [A], &mut [B]))| body(i * rows, a, b);
+    let (chunk_a, chunk_b) = (rows * row_len_a, rows * row_len_b);
+    if run_serially(total_bytes, threads) {
+        out_a
+            .chunks_mut(chunk_a)
+            .zip(out_b.chunks_mut(chunk_b))
+            .enumerate()
+            .try_for_each(task)
+    } else {
+        install(|| {
+            out_a
+                .par_chunks_mut(chunk_a)
+                .zip(out_b.par_chunks_mut(chunk_b))
+                .enumerate()
+                .try_for_each(task)
+        })?
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn row_chunk_pairs_see_the_same_rows() {
+        for n_rows in [0usize, 1, 7, 300, 70_000] {
+            let mut a = vec![0u32; n_rows * 3];
+            let mut b = vec![0u8; n_rows];
+            for_each_row_chunk_pair(&mut a, &mut b, 3, 1, |first, ra, rb| {
+                assert_eq!(ra.len(), 3 * rb.len());
+                for (k, (row, x)) in ra.chunks_exact_mut(3).zip(rb.iter_mut()).enumerate() {
+                    row.fill(u32::try_from(first + k).unwrap());
+                    *x = ((first + k) % 251) as u8;
+                }
+                Ok(())
+            })
+            .unwrap();
+            for r in 0..n_rows {
+                assert!(a[3 * r..3 * r + 3].iter().all(|&v| v as usize == r));
+                assert_eq!(b[r] as usize, r % 251);
+            }
+        }
+        let (mut a, mut b) = (vec![0u8; 6], vec![0u8; 4]);
+        assert!(for_each_row_chunk_pair(&mut a, &mut b, 2, 1, |_, _, _| Ok(())).is_err());
+        assert!(for_each_row_chunk_pair(&mut a, &mut b, 0, 1, |_, _, _| Ok(())).is_err());
+    }
 
     #[test]
     fn rows_per_task_is_never_zero_and_balances() {

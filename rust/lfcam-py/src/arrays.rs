@@ -2,11 +2,14 @@
 
 use lfcam_core::ImageView;
 use numpy::{
-    Element, PyArrayDyn, PyArrayMethods, PyReadonlyArrayDyn, PyUntypedArray, PyUntypedArrayMethods,
+    Element, PyArrayDescrMethods, PyArrayDyn, PyArrayMethods, PyReadonlyArrayDyn, PyUntypedArray,
+    PyUntypedArrayMethods, dtype,
 };
 use pyo3::prelude::*;
+use pyo3::sync::PyOnceLock;
+use pyo3::types::PyTuple;
 
-use crate::errors::{input_error, to_pyerr};
+use crate::errors::{input_error, internal_error, to_pyerr};
 
 /// `obj` as a numpy array, or `InputError` naming `arg`.
 pub fn as_untyped<'a, 'py>(
@@ -88,4 +91,98 @@ pub fn image_view<'a, T: Element>(
         .as_slice()
         .map_err(|_| input_error(py, arg, "must be C-contiguous and aligned"))?;
     ImageView::new(data, h, w, c).map_err(|e| to_pyerr(py, e))
+}
+
+/// `obj` borrowed read-only as an array of dtype `T` (`name`, as numpy spells it, for
+/// the message), or `InputError` naming `arg`.
+pub fn typed<'py, T: Element>(
+    obj: &Bound<'py, PyAny>,
+    arg: &str,
+    name: &str,
+) -> PyResult<PyReadonlyArrayDyn<'py, T>> {
+    let py = obj.py();
+    let arr = as_untyped(obj, arg)?;
+    if !arr.dtype().is_equiv_to(&dtype::<T>(py)) {
+        return Err(input_error(
+            py,
+            arg,
+            format!("expected dtype {name}, got {}", dtype_name(arr)),
+        ));
+    }
+    readonly::<T>(arr, arg)
+}
+
+/// The elements of a C-contiguous array, or `InputError` naming `arg`.
+pub fn c_slice<'a, T: Element>(arr: &'a PyReadonlyArrayDyn<'_, T>, arg: &str) -> PyResult<&'a [T]> {
+    let py = arr.py();
+    if !arr.is_c_contiguous() {
+        return Err(input_error(
+            py,
+            arg,
+            "must be C-contiguous (use numpy.ascontiguousarray)",
+        ));
+    }
+    arr.as_slice()
+        .map_err(|_| input_error(py, arg, "must be C-contiguous and aligned"))
+}
+
+/// `obj` as `(N, 4)` rows `(x0, y0, w, h)`, copied out of an int64 C-contiguous array.
+pub fn rect_rows(obj: &Bound<'_, PyAny>, arg: &str) -> PyResult<Vec<[i64; 4]>> {
+    let py = obj.py();
+    let ro = typed::<i64>(obj, arg, "int64")?;
+    let shape = ro.shape();
+    if !matches!(shape, [_, 4]) {
+        return Err(input_error(
+            py,
+            arg,
+            format!("expected shape (N, 4) of rows (x0, y0, w, h), got {shape:?}"),
+        ));
+    }
+    let (rows, _) = c_slice(&ro, arg)?.as_chunks::<4>();
+    Ok(rows.to_vec())
+}
+
+/// `numpy.empty`, imported once.
+fn numpy_empty(py: Python<'_>) -> PyResult<&Bound<'_, PyAny>> {
+    static EMPTY: PyOnceLock<Py<PyAny>> = PyOnceLock::new();
+    EMPTY.import(py, "numpy", "empty")
+}
+
+/// A new C-contiguous array of `shape` and dtype `T`, from `numpy.empty`.
+///
+/// Allocated by numpy rather than as a Rust `Vec` moved out with `into_pyarray`: numpy
+/// madvises large allocations for transparent huge pages, which makes the first-touch
+/// page faults (the dominant cost of filling a fresh output of tens of MB) several
+/// times cheaper; and `empty`, unlike `zeros` (calloc), does not zero memory the
+/// allocator reuses. Measured with benchmarks/run.py (crop_lenslets, full size, 2
+/// threads): ~9 ms, against 24 ms for a `Vec`. Callers must write every element (the
+/// kernels check `out.len()` and cover every row); on error the array is dropped.
+/// Called through Python, not `PyArray::new`, so that a failed allocation raises
+/// numpy's `MemoryError` instead of panicking (and no `unsafe` is needed).
+pub fn new_array<'py, T: Element>(
+    py: Python<'py>,
+    shape: &[usize],
+) -> PyResult<Bound<'py, PyArrayDyn<T>>> {
+    Ok(numpy_empty(py)?
+        .call1((PyTuple::new(py, shape)?, dtype::<T>(py)))?
+        .cast_into::<PyArrayDyn<T>>()?)
+}
+
+/// Runs `kernel` on the elements of `out` (a fresh array from [`new_array`]) with the
+/// GIL released, inside lfcam's pool; core errors become exceptions.
+pub fn fill<T, F>(out: &Bound<'_, PyArrayDyn<T>>, function: &str, kernel: F) -> PyResult<()>
+where
+    T: Element + Send,
+    F: FnOnce(&mut [T]) -> lfcam_core::Result<()> + Send,
+{
+    let py = out.py();
+    let mut rw = out
+        .try_readwrite()
+        .map_err(|e| internal_error(py, function, format!("output borrow: {e}")))?;
+    let slice = rw
+        .as_slice_mut()
+        .map_err(|e| internal_error(py, function, format!("output slice: {e}")))?;
+    py.detach(|| lfcam_core::parallel::install(|| kernel(slice)))
+        .and_then(|inner| inner)
+        .map_err(|e| to_pyerr(py, e))
 }

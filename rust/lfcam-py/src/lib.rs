@@ -8,6 +8,9 @@
 mod arrays;
 mod crop;
 mod errors;
+mod rectify;
+mod remap;
+mod stats;
 mod threads;
 
 use pyo3::prelude::*;
@@ -21,6 +24,12 @@ mod lfcam_ext {
     use crate::crop::crop_lenslets;
     #[pymodule_export]
     use crate::errors::{_panic_for_test, _raise_core_error};
+    #[pymodule_export]
+    use crate::rectify::rectify;
+    #[pymodule_export]
+    use crate::remap::remap_bilinear;
+    #[pymodule_export]
+    use crate::stats::nan_median;
     #[pymodule_export]
     use crate::threads::{get_num_threads, set_num_threads};
 

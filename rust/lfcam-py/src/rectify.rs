@@ -1,0 +1,166 @@
+//! `rectify`.
+
+use lfcam_core::ImageView;
+use lfcam_core::rectify::{Interp, RawSample, ViewMaps, rectify_output_shape};
+use numpy::{Element, PyArrayDescrMethods, PyUntypedArrayMethods, dtype};
+use pyo3::prelude::*;
+
+use crate::arrays::{
+    as_untyped, c_slice, dtype_name, fill, image_view, new_array, readonly, rect_rows, typed,
+};
+use crate::errors::{guarded, input_error, to_pyerr};
+
+/// Rectifies views of a raw frame: gain, crop and remap in one pass (NaN for no data).
+///
+/// raw: (H, W) or (H, W, C) uint8, uint16 or float32, C-contiguous, C <= 4.
+/// gains: (H, W) or (H, W, G) float32, G = 1 or C; 0 marks a masked pixel.
+/// crops: (N, 4) int64 rows (x0, y0, w, h).
+/// warps: (N, Hr, Wr, 2) float32, crop-relative positions (x, y).
+/// masks: None or (N, Hr, Wr) uint8 (0: no data), e.g. a bool mask viewed as uint8.
+/// interp: "bilinear", "bilinear-exact", "bilinear-q32" or "bicubic".
+/// views: None (all) or (M,) int64 view indices.
+/// Returns a new (M, Hr, Wr) or (M, Hr, Wr, C) float32 array.
+#[pyfunction]
+#[pyo3(signature = (raw, gains, crops, warps, masks, interp, views))]
+#[allow(clippy::too_many_arguments)]
+pub fn rectify<'py>(
+    py: Python<'py>,
+    raw: &Bound<'py, PyAny>,
+    gains: &Bound<'py, PyAny>,
+    crops: &Bound<'py, PyAny>,
+    warps: &Bound<'py, PyAny>,
+    masks: Option<&Bound<'py, PyAny>>,
+    interp: &str,
+    views: Option<&Bound<'py, PyAny>>,
+) -> PyResult<Bound<'py, PyAny>> {
+    guarded(py, "rectify", || {
+        let interp: Interp = interp.parse().map_err(|e| to_pyerr(py, e))?;
+        let raw_arr = as_untyped(raw, "raw")?;
+        let args = Args {
+            gains,
+            crops,
+            warps,
+            masks,
+            views,
+            interp,
+        };
+        let dt = raw_arr.dtype();
+        if dt.is_equiv_to(&dtype::<u8>(py)) {
+            rectify_typed::<u8>(raw_arr, &args)
+        } else if dt.is_equiv_to(&dtype::<u16>(py)) {
+            rectify_typed::<u16>(raw_arr, &args)
+        } else if dt.is_equiv_to(&dtype::<f32>(py)) {
+            rectify_typed::<f32>(raw_arr, &args)
+        } else {
+            Err(input_error(
+                py,
+                "raw",
+                format!(
+                    "dtype {} is not supported; expected uint8, uint16 or float32",
+                    dtype_name(raw_arr)
+                ),
+            ))
+        }
+    })
+}
+
+/// The arguments besides `raw`.
+struct Args<'a, 'py> {
+    gains: &'a Bound<'py, PyAny>,
+    crops: &'a Bound<'py, PyAny>,
+    warps: &'a Bound<'py, PyAny>,
+    masks: Option<&'a Bound<'py, PyAny>>,
+    views: Option<&'a Bound<'py, PyAny>>,
+    interp: Interp,
+}
+
+fn rectify_typed<'py, T>(
+    raw: &Bound<'py, numpy::PyUntypedArray>,
+    args: &Args<'_, 'py>,
+) -> PyResult<Bound<'py, PyAny>>
+where
+    T: Element + RawSample,
+{
+    let py = raw.py();
+    let raw_ro = readonly::<T>(raw, "raw")?;
+    let raw_v: ImageView<'_, T> = image_view(&raw_ro, "raw")?;
+    let gains_ro = typed::<f32>(args.gains, "gains", "float32")?;
+    let gains_v = image_view(&gains_ro, "gains")?;
+    let crops = rect_rows(args.crops, "crops")?;
+
+    let warps_ro = typed::<f32>(args.warps, "warps", "float32")?;
+    let &[n, h, w, 2] = warps_ro.shape() else {
+        return Err(input_error(
+            py,
+            "warps",
+            format!(
+                "expected shape (N, H, W, 2) of positions (x, y), got {:?}",
+                warps_ro.shape()
+            ),
+        ));
+    };
+    let warps = c_slice(&warps_ro, "warps")?;
+    let masks_ro = args
+        .masks
+        .map(|m| typed::<u8>(m, "masks", "uint8"))
+        .transpose()?;
+    let masks = match &masks_ro {
+        None => None,
+        Some(ro) => {
+            if ro.shape() != [n, h, w] {
+                return Err(input_error(
+                    py,
+                    "masks",
+                    format!(
+                        "shape {:?} differs from the warps' (N, H, W) = ({n}, {h}, {w})",
+                        ro.shape()
+                    ),
+                ));
+            }
+            Some(c_slice(ro, "masks")?)
+        }
+    };
+    let views: Vec<usize> = match args.views {
+        None => (0..n).collect(),
+        Some(v) => {
+            let ro = typed::<i64>(v, "views", "int64")?;
+            if ro.ndim() != 1 {
+                return Err(input_error(
+                    py,
+                    "views",
+                    format!(
+                        "expected a 1-D array of view indices, got shape {:?}",
+                        ro.shape()
+                    ),
+                ));
+            }
+            c_slice(&ro, "views")?
+                .iter()
+                .enumerate()
+                .map(|(j, &i)| {
+                    usize::try_from(i).map_err(|_| {
+                        input_error(
+                            py,
+                            &format!("views[{j}]"),
+                            format!("view index {i} is negative"),
+                        )
+                    })
+                })
+                .collect::<PyResult<_>>()?
+        }
+    };
+    let maps = ViewMaps::new(warps, masks, n, h, w).map_err(|e| to_pyerr(py, e))?;
+    let [m, rh, rw, c] = rectify_output_shape(&raw_v, &gains_v, &crops, &maps, &views)
+        .map_err(|e| to_pyerr(py, e))?;
+    let shape: Vec<usize> = if raw_ro.ndim() == 2 {
+        vec![m, rh, rw]
+    } else {
+        vec![m, rh, rw, c]
+    };
+    let out = new_array::<f32>(py, &shape)?;
+    let interp = args.interp;
+    fill(&out, "rectify", |slice| {
+        lfcam_core::rectify(raw_v, gains_v, &crops, maps, &views, interp, slice)
+    })?;
+    Ok(out.into_any())
+}
