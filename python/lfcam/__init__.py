@@ -15,6 +15,7 @@ from lfcam.io import read_image, read_raw
 from lfcam.pattern import make_pattern
 from lfcam.simulator import SimConfig, SimulationResult, simulate
 from lfcam.stats import nan_median
+from lfcam.triangulate import TriangulationResult, triangulate
 from lfcam.warp import rectify, remap_bilinear
 
 __all__ = [
@@ -25,6 +26,7 @@ __all__ = [
     "NumericalError",
     "SimConfig",
     "SimulationResult",
+    "TriangulationResult",
     "__version__",
     "calibrate",
     "crop_lenslets",
@@ -37,4 +39,5 @@ __all__ = [
     "remap_bilinear",
     "set_num_threads",
     "simulate",
+    "triangulate",
 ]

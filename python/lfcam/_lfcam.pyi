@@ -15,6 +15,7 @@ __all__ = [
     "rectify",
     "remap_bilinear",
     "set_num_threads",
+    "triangulate",
 ]
 
 _Pixel = TypeVar("_Pixel", np.uint8, np.uint16, np.float32)
@@ -42,6 +43,24 @@ def nan_median(
     stack: NDArray[np.float32],
 ) -> tuple[NDArray[np.float32], NDArray[np.uint8] | NDArray[np.uint16]]:
     """Median over axis 0 of a C-contiguous (K, ...) float32 stack ignoring NaN, and counts."""
+
+def triangulate(
+    flows: NDArray[np.float32],
+    offsets: NDArray[np.float64],
+    reference: int,
+    weights: NDArray[np.float32] | None,
+    min_views: int,
+    sigma_floor: float,
+    cutoff: float,
+    iterations: int,
+) -> tuple[
+    NDArray[np.float32],
+    NDArray[np.float32],
+    NDArray[np.float32],
+    NDArray[np.float32],
+    NDArray[np.uint8],
+]:
+    """Robust parallax of (N, H, W, 2) float32 flows: (s, confidence, residual, perp, n_used)."""
 
 def set_num_threads(n: int) -> None:
     """Set the number of threads lfcam's kernels run on (1 to 1024)."""

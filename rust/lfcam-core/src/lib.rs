@@ -16,6 +16,7 @@ pub mod parallel;
 pub mod rectify;
 pub mod remap;
 pub mod stats;
+pub mod triangulate;
 
 pub use crate::crop::crop_lenslets;
 pub use crate::error::{Error, Result};
@@ -23,3 +24,4 @@ pub use crate::image::ImageView;
 pub use crate::rectify::{Interp, ViewMaps, rectify};
 pub use crate::remap::remap_bilinear;
 pub use crate::stats::nan_median;
+pub use crate::triangulate::triangulate;

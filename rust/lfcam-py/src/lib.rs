@@ -12,6 +12,7 @@ mod rectify;
 mod remap;
 mod stats;
 mod threads;
+mod triangulate;
 
 use pyo3::prelude::*;
 
@@ -32,6 +33,8 @@ mod lfcam_ext {
     use crate::stats::nan_median;
     #[pymodule_export]
     use crate::threads::{get_num_threads, set_num_threads};
+    #[pymodule_export]
+    use crate::triangulate::triangulate;
 
     #[pymodule_init]
     fn init(m: &Bound<'_, PyModule>) -> PyResult<()> {
