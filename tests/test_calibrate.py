@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 import lfcam
-from lfcam.calibrate import fit_depth_model, run_calibration
+from lfcam.calibrate import fit_depth_model
 from lfcam.cli import main
 from lfcam.io import read_raw, to_float
-from lfcam.simulator import SimConfig, SimulatedCamera, _Renderer, add_noise, load_truth
+from lfcam.simulator import SimConfig, SimulatedCamera, _Renderer, add_noise
 
 
 # --------------------------------------------------------------------------
@@ -21,11 +21,8 @@ from lfcam.simulator import SimConfig, SimulatedCamera, _Renderer, add_noise, lo
 # 3 distances x 5 captures), as the issue specifies.
 # --------------------------------------------------------------------------
 @pytest.fixture(scope="module")
-def reference_run(tmp_path_factory):
-    root = tmp_path_factory.mktemp("cal")
-    sim = lfcam.simulate(root / "sim", SimConfig(scenes=()))
-    run = run_calibration(sim.calibration_dir)
-    return sim, run, load_truth(sim.truth_dir / "camera.npz")
+def reference_run(reference_camera):
+    return reference_camera.sim, reference_camera.run, reference_camera.truth
 
 
 def test_layout_matches_truth(reference_run) -> None:

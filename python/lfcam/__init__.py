@@ -10,17 +10,21 @@ from lfcam._lfcam import __version__, get_num_threads, set_num_threads
 from lfcam.calibrate import calibrate
 from lfcam.calibration import Calibration
 from lfcam.crop import crop_lenslets
+from lfcam.depth import DepthResult, depth_from_views, estimate_depth
 from lfcam.errors import CalibrationError, InputError, LfcamError, NumericalError
 from lfcam.io import read_image, read_raw
 from lfcam.pattern import make_pattern
+from lfcam.pipeline import CaptureResult, process_capture, rectify
 from lfcam.simulator import SimConfig, SimulationResult, simulate
 from lfcam.stats import nan_median
 from lfcam.triangulate import TriangulationResult, triangulate
-from lfcam.warp import rectify, remap_bilinear
+from lfcam.warp import remap_bilinear
 
 __all__ = [
     "Calibration",
     "CalibrationError",
+    "CaptureResult",
+    "DepthResult",
     "InputError",
     "LfcamError",
     "NumericalError",
@@ -30,9 +34,12 @@ __all__ = [
     "__version__",
     "calibrate",
     "crop_lenslets",
+    "depth_from_views",
+    "estimate_depth",
     "get_num_threads",
     "make_pattern",
     "nan_median",
+    "process_capture",
     "read_image",
     "read_raw",
     "rectify",

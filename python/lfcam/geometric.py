@@ -17,6 +17,7 @@ import numpy as np
 from .errors import CalibrationError
 from .flow import FlowParams, dis_flow, prepare
 from .stats import nan_median
+from .warp import remap_bilinear
 
 __all__ = ["ViewRegistration", "coarse_homography", "register_view", "remap", "smooth_map"]
 
@@ -24,32 +25,12 @@ __all__ = ["ViewRegistration", "coarse_homography", "register_view", "remap", "s
 def remap(src: np.ndarray, warp: np.ndarray) -> np.ndarray:
     """Bilinear sampling of ``src`` (H, W[, C]) at ``warp`` (H', W', 2); NaN outside.
 
-    A sample is NaN when its 2x2 footprint leaves ``src`` or touches a NaN.
+    A sample is NaN when its 2x2 footprint leaves ``src`` or touches a NaN
+    (:func:`lfcam.warp.remap_bilinear`, in the Rust core).
     """
-    # TEMPORARY numpy version until the Rust kernel lands.
-    src = np.asarray(src, np.float32)
-    squeeze = src.ndim == 2
-    if squeeze:
-        src = src[..., None]
-    H, W = src.shape[:2]
-    x = warp[..., 0].astype(np.float64)
-    y = warp[..., 1].astype(np.float64)
-    with np.errstate(invalid="ignore"):
-        ok = (x >= 0) & (y >= 0) & (x <= W - 1) & (y <= H - 1)
-    xs = np.where(ok, x, 0.0)
-    ys = np.where(ok, y, 0.0)
-    x0 = np.minimum(np.floor(xs).astype(np.int64), W - 2)
-    y0 = np.minimum(np.floor(ys).astype(np.int64), H - 2)
-    fx = (xs - x0)[..., None]
-    fy = (ys - y0)[..., None]
-    out = (
-        src[y0, x0] * (1 - fx) * (1 - fy)
-        + src[y0, x0 + 1] * fx * (1 - fy)
-        + src[y0 + 1, x0] * (1 - fx) * fy
-        + src[y0 + 1, x0 + 1] * fx * fy
+    return remap_bilinear(
+        np.ascontiguousarray(src, np.float32), np.ascontiguousarray(warp, np.float32)
     )
-    out = np.where(ok[..., None], out, np.nan).astype(np.float32)
-    return out[..., 0] if squeeze else out
 
 
 def identity_grid(h: int, w: int) -> np.ndarray:

@@ -1,0 +1,198 @@
+"""Writing one capture's products: depth (TIFF + preview), confidence, point cloud, JSON.
+
+Every capture's folder is assembled under a temporary name and renamed when
+complete, so an interrupted run never leaves a half-written result; a folder
+with ``result.json`` is complete.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from .calibration import Calibration
+from .io import write_image
+from .pipeline import CaptureResult
+
+__all__ = ["colour_depth", "points_from_depth", "write_capture", "write_ply"]
+
+
+def colour_depth(depth: np.ndarray, lo: float | None = None, hi: float | None = None) -> np.ndarray:
+    """Depth (m) -> RGB preview with a labelled colour bar (TURBO, near = red)."""
+    finite = np.isfinite(depth)
+    if lo is None or hi is None:
+        if finite.any():
+            lo, hi = (float(v) for v in np.percentile(depth[finite], [1, 99]))
+        else:
+            lo, hi = 0.0, 1.0
+    hi = max(hi, lo + 1e-6)
+    t = np.clip((np.nan_to_num(depth, nan=hi) - lo) / (hi - lo), 0, 1)
+    bgr = cv2.applyColorMap(np.round((1 - t) * 255).astype(np.uint8), cv2.COLORMAP_TURBO)
+    bgr[~finite] = 0
+    H = depth.shape[0]
+    bar_w, pad, text_w = max(12, H // 30), 8, 90
+    bar = np.full((H, bar_w + pad + text_w, 3), 255, np.uint8)
+    ramp = np.linspace(0, 1, H)[:, None]  # top = near (lo)
+    col = cv2.applyColorMap(np.round((1 - ramp) * 255).astype(np.uint8), cv2.COLORMAP_TURBO)
+    bar[:, pad : pad + bar_w] = np.repeat(col, bar_w, axis=1)
+    for k in range(6):
+        y = round(k / 5 * (H - 1))
+        z = lo + (hi - lo) * k / 5
+        yt = min(max(y + 5, 12), H - 3)
+        cv2.putText(
+            bar,
+            f"{z:.3g} m",
+            (pad + bar_w + 4, yt),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.4,
+            (0, 0, 0),
+            1,
+            cv2.LINE_AA,
+        )
+    return np.concatenate([bgr, bar], axis=1)[..., ::-1].copy()
+
+
+def points_from_depth(depth: np.ndarray, cal: Calibration) -> tuple[np.ndarray, np.ndarray, str]:
+    """3-D points (metres, front-lens frame: X right, Y down, Z forward) of finite depths.
+
+    The reference view's object-space centre is ``(b_ref, Z_c)``; its ray through
+    rectified pixel p passes the board point ``B(p)`` at ``Z_b``, so the point at
+    depth Z is ``C + (B - C)(Z - Z_c)/(Z_b - Z_c)``. Lateral positions need the
+    pattern pitch; the lenslet array is taken as centred on the lens axis
+    (``sum_i b_i = 0``). Without a pitch, X and Y are in rectified pixels at
+    ``Z_b`` (units ``"board px"``).
+
+    Returns
+    -------
+    points : (M, 3) float32
+    index : (M, 2) int64
+        Row and column of each point in the rectified frame.
+    units : str
+        ``"m"`` or ``"board px"`` for X and Y.
+    """
+    vv, uu = np.nonzero(np.isfinite(depth))
+    Z = depth[vv, uu].astype(np.float64)
+    sx, sy = cal.pattern_shape[1] / cal.rect_shape[1], cal.pattern_shape[0] / cal.rect_shape[0]
+    xp = (uu + 0.5) * sx - 0.5 - (cal.pattern_shape[1] - 1) / 2.0
+    yp = (vv + 0.5) * sy - 0.5 - (cal.pattern_shape[0] - 1) / 2.0
+    metric_xy = np.isfinite(cal.pattern_pitch)
+    if metric_xy:
+        pitch_rect = cal.pattern_pitch * sx
+        B = np.stack([xp * cal.pattern_pitch, yp * cal.pattern_pitch], 1)
+    else:
+        pitch_rect = 1.0
+        B = np.stack([uu, vv], 1).astype(np.float64)
+    if cal.metric:
+        b_ref = -cal.offsets.mean(axis=0) * pitch_rect
+        f = (Z - cal.z_c) / (cal.z_b - cal.z_c)
+        XY = b_ref + (B - b_ref) * f[:, None]
+    else:
+        XY = B
+    pts = np.column_stack([XY, Z]).astype(np.float32)
+    return pts, np.stack([vv, uu], 1), "m" if metric_xy else "board px"
+
+
+def write_ply(path: str | os.PathLike[str], points: np.ndarray, colours: np.ndarray) -> None:
+    """Binary little-endian PLY: float32 x, y, z and uint8 red, green, blue per vertex."""
+    n = len(points)
+    header = (
+        "ply\nformat binary_little_endian 1.0\ncomment written by lfcam\n"
+        f"element vertex {n}\nproperty float x\nproperty float y\nproperty float z\n"
+        "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n"
+    ).encode("ascii")
+    rec = np.empty(n, dtype=[("p", "<f4", 3), ("c", "u1", 3)])
+    rec["p"] = points
+    rec["c"] = colours
+    with open(path, "wb") as fh:
+        fh.write(header)
+        fh.write(rec.tobytes())
+
+
+def _to_u8(img: np.ndarray) -> np.ndarray:
+    x = np.nan_to_num(img, nan=0.0)
+    return np.round(np.clip(x, 0, 1) ** (1 / 2.2) * 255).astype(np.uint8)
+
+
+def write_capture(
+    out_dir: str | os.PathLike[str],
+    result: CaptureResult,
+    cal: Calibration,
+    *,
+    extra: dict[str, Any] | None = None,
+    save_views: bool = False,
+) -> Path:
+    """Write one capture's folder atomically; returns its path.
+
+    Files: ``depth.tiff`` (float32 m, NaN unknown), ``depth.png`` (preview with
+    a colour bar), ``confidence.tiff``, ``points.ply`` (coloured), ``result.json``
+    and, with ``save_views``, ``views/view_RR_CC.png``.
+    """
+    out = Path(out_dir)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+    try:
+        d = result.depth
+        ref_view = result.views[cal.reference]
+        depth = d.depth if d.depth is not None else d.relative
+        assert depth is not None
+        write_image(tmp / "depth.tiff", depth.astype(np.float32))
+        write_image(tmp / "depth.png", colour_depth(depth))
+        write_image(tmp / "confidence.tiff", d.confidence.astype(np.float32))
+        pts, idx, units = points_from_depth(depth, cal)
+        colours = _to_u8(ref_view[idx[:, 0], idx[:, 1]])
+        if colours.ndim == 1:
+            colours = np.repeat(colours[:, None], 3, 1)
+        write_ply(tmp / "points.ply", pts, colours)
+        if save_views:
+            (tmp / "views").mkdir()
+            C = cal.grid[1]
+            for i, v in enumerate(result.views):
+                r, c = divmod(i, C)
+                write_image(tmp / "views" / f"view_{r}_{c}.png", _to_u8(v))
+        finite = np.isfinite(depth)
+        seen = cal.masks[cal.reference]
+        stats = {
+            "coverage": float(finite[seen].mean()) if seen.any() else 0.0,
+            "depth_median": float(np.median(depth[finite])) if finite.any() else None,
+            "depth_p1_p99": [float(v) for v in np.percentile(depth[finite], [1, 99])]
+            if finite.any()
+            else None,
+            "confidence_median": float(np.median(d.confidence[finite])) if finite.any() else None,
+            "flow_residual_median_px": float(np.nanmedian(d.residual[finite]))
+            if finite.any()
+            else None,
+            "perpendicular_median_px": float(np.nanmedian(d.perpendicular[finite]))
+            if finite.any()
+            else None,
+            "points": len(pts),
+        }
+        info = {
+            "source": result.source,
+            "depth_units": "m" if d.depth is not None else "relative (t = s Z_c / Z_b)",
+            "xy_units": units,
+            "rect_shape": list(cal.rect_shape),
+            "reference": list(cal.reference_rc),
+            "timings_s": result.timings,
+            "statistics": stats,
+            **(extra or {}),
+        }
+        (tmp / "result.json").write_text(json.dumps(info, indent=2, default=str))
+        mask = os.umask(0)
+        os.umask(mask)
+        for p in tmp.rglob("*"):
+            os.chmod(p, (0o777 if p.is_dir() else 0o666) & ~mask)
+        os.chmod(tmp, 0o777 & ~mask)
+        if out.exists():
+            shutil.rmtree(out)
+        os.replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out

@@ -1,0 +1,228 @@
+"""Per-capture processing against the simulator's ground truth (issue 4)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+import tifffile
+
+import lfcam
+from lfcam.calibrate import run_calibration
+from lfcam.cli import main
+from lfcam.outputs import points_from_depth
+from lfcam.pipeline import process_capture
+from lfcam.simulator import SimConfig
+
+
+def _truth(sim, name):
+    depth = tifffile.imread(sim.truth_dir / name / "depth.tiff")
+    labels = cv2.imread(str(sim.truth_dir / name / "labels.png"), cv2.IMREAD_UNCHANGED)
+    return depth, labels
+
+
+def _accuracy(z, truth, labels, seen, band_px=3):
+    """Median relative error and coverage away from occlusion edges (a thin band),
+    and the share of pixels off by more than 5% over ALL seen pixels."""
+    edges = cv2.morphologyEx(labels, cv2.MORPH_GRADIENT, np.ones((3, 3), np.uint8)) > 0
+    near = cv2.dilate(edges.astype(np.uint8), np.ones((2 * band_px + 1,) * 2, np.uint8)) > 0
+    away = seen & ~near
+    rel = np.abs(z - truth) / truth
+    med = float(np.nanmedian(rel[away]))
+    cover = float(np.isfinite(z[away]).mean())
+    bad = float(np.mean(~(rel[seen] <= 0.05)))  # unknown counts as bad
+    return med, cover, bad
+
+
+@pytest.fixture(scope="module")
+def processed(reference_camera):
+    cam = reference_camera
+    return {n: process_capture(p, cam.cal) for n, p in cam.sim.captures.items()}
+
+
+@pytest.mark.parametrize("scene", ["planes", "spheres", "layered"])
+def test_depth_accuracy(reference_camera, processed, scene) -> None:
+    cam = reference_camera
+    z = processed[scene].depth.depth
+    truth, labels = _truth(cam.sim, scene)
+    seen = cam.cal.masks[cam.cal.reference]
+    med, cover, bad = _accuracy(z, truth, labels, seen)
+    assert med <= 0.01, f"{scene}: median relative error {med:.4f}"
+    assert cover >= 0.95, f"{scene}: coverage {cover:.3f}"
+    assert bad <= 0.05, f"{scene}: {100 * bad:.1f}% of pixels off by > 5% (or unknown)"
+
+
+def test_occlusions_need_robust_view_selection(reference_camera, processed) -> None:
+    """Plain least squares over all views fails near occlusions; the robust kernel
+    does not (this shows the test above can fail)."""
+    cam = reference_camera
+    res = processed["layered"]
+    from lfcam.depth import compute_flows, depth_from_parallax
+
+    flows, _ = compute_flows(res.views, cam.cal.reference)
+    o = cam.cal.offsets[:, None, None, :]
+    ok = np.isfinite(flows).all(-1)
+    num = np.where(ok, (np.nan_to_num(flows) * o).sum(-1), 0).sum(0)
+    den = np.where(ok, (o**2).sum(-1), 0).sum(0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        s_plain = num / den
+    truth, labels = _truth(cam.sim, "layered")
+    seen = cam.cal.masks[cam.cal.reference]
+    z_plain = depth_from_parallax(s_plain, cam.cal.z_b, cam.cal.z_c)
+    _, _, bad_plain = _accuracy(z_plain, truth, labels, seen)
+    _, _, bad_robust = _accuracy(res.depth.depth, truth, labels, seen)
+    assert bad_robust < bad_plain
+
+
+def test_board_at_an_unseen_distance_is_flat(reference_camera, processed) -> None:
+    cam = reference_camera
+    z = processed["board"].depth.depth
+    pts, _, units = points_from_depth(z, cam.cal)
+    assert units == "m"
+    c = pts.mean(0)
+    _, _, vt = np.linalg.svd((pts - c).astype(np.float64), full_matrices=False)
+    dist = (pts - c) @ vt[2]
+    rms = float(np.sqrt(np.mean(dist**2)))
+    d0 = cam.sim.camera.cfg.board_distance
+    assert rms <= 0.005 * d0, f"plane-fit RMS {rms * 1000:.2f} mm at {d0} m"
+    assert abs(float(np.median(z[np.isfinite(z)])) - d0) < 0.01 * d0
+    assert abs(abs(vt[2, 2]) - 1) < 0.01  # fronto-parallel
+
+
+def test_rectify_matches_opencv(reference_camera) -> None:
+    cam = reference_camera
+    cal = cam.cal
+    raw = lfcam.read_raw(cam.sim.captures["planes"])
+    views = lfcam.rectify(raw, cal)
+    assert views.shape == (12, *cal.rect_shape, 3)
+    i = 3
+    x0, y0, w, h = cal.crops[i]
+    src = (raw.astype(np.float32) / 255 * cal.gains)[y0 : y0 + h, x0 : x0 + w]
+    ref = cv2.remap(src, cal.warps[i][..., 0], cal.warps[i][..., 1], cv2.INTER_LINEAR)
+    both = np.isfinite(views[i]).all(-1)
+    assert both.sum() > 0.9 * cal.masks[i].sum()
+    np.testing.assert_allclose(views[i][both], ref[both], atol=1e-5)
+
+
+def test_depth_from_views_on_bare_arrays(reference_camera, processed) -> None:
+    cam = reference_camera
+    res = processed["spheres"]
+    bare = lfcam.depth_from_views(res.views, cam.cal.offsets, cam.cal.reference)
+    same = np.isfinite(bare.parallax) & np.isfinite(res.depth.parallax)
+    assert same.mean() > 0.2
+    np.testing.assert_allclose(bare.parallax[same], res.depth.parallax[same], atol=1e-6)
+    with pytest.raises(lfcam.InputError, match="offsets"):
+        lfcam.depth_from_views(res.views, cam.cal.offsets[:5], cam.cal.reference)
+    with pytest.raises(lfcam.InputError, match="reference"):
+        lfcam.depth_from_views(res.views, cam.cal.offsets, 40)
+
+
+# --------------------------------------------------------------------------
+# Other cameras as users have them (smaller views to keep CI short).
+# --------------------------------------------------------------------------
+VARIANTS = {
+    "3x3-16bit-tiff": SimConfig(
+        grid=(3, 3),
+        view_size=(320, 240),
+        bit_depth=16,
+        raw_format="tiff",
+        captures_per_distance=3,
+        scenes=("layered",),
+        seed=31,
+    ),
+    "4x4-strong-distortion-cast": SimConfig(
+        grid=(4, 4),
+        view_size=(280, 210),
+        distortion=1.6,
+        colour_cast=(0.6, 1.0, 0.9),
+        captures_per_distance=3,
+        scenes=("spheres",),
+        seed=32,
+    ),
+    "3x4-bayer-png": SimConfig(
+        view_size=(320, 240),
+        bayer="RGGB",
+        captures_per_distance=3,
+        scenes=("planes",),
+        seed=33,
+    ),
+}
+
+
+@pytest.mark.parametrize(
+    ("name", "cfg"),
+    [
+        pytest.param(
+            k, *(v.values if hasattr(v, "values") else (v,)), marks=getattr(v, "marks", ())
+        )
+        for k, v in VARIANTS.items()
+    ],
+)
+def test_other_cameras(name, cfg, tmp_path) -> None:
+    sim = lfcam.simulate(tmp_path / "sim", cfg)
+    # scale=1: compare in the ground truth's frame (the pattern's own grid).
+    cal = run_calibration(sim.calibration_dir, scale=1.0).calibration
+    assert cal.grid == cfg.grid
+    assert cal.metric
+    scene = cfg.scenes[0]
+    res = process_capture(sim.captures[scene], cal)
+    truth, labels = _truth(sim, scene)
+    med, cover, bad = _accuracy(res.depth.depth, truth, labels, cal.masks[cal.reference])
+    assert med <= 0.01, f"{name}: median relative error {med:.4f}"
+    assert cover >= 0.95, f"{name}: coverage {cover:.3f}"
+    assert bad <= 0.05, f"{name}: {100 * bad:.1f}% off by > 5%"
+
+
+# --------------------------------------------------------------------------
+# lfcam process: outputs, resuming, bad captures, parallel jobs.
+# --------------------------------------------------------------------------
+def test_process_command(reference_camera, tmp_path, capsys) -> None:
+    cam = reference_camera
+    calf = tmp_path / "camera.lfcal"
+    cam.run.save(calf)
+    inp = tmp_path / "in"
+    (inp / "day2").mkdir(parents=True)
+    shutil.copy(cam.sim.captures["planes"], inp / "a.png")
+    shutil.copy(cam.sim.captures["board"], inp / "day2" / "b.png")
+    (inp / "broken.png").write_bytes(b"\x89PNG\r\n\x1a\n not really")
+    out = tmp_path / "out"
+    code = main(["process", str(inp), "-c", str(calf), "-o", str(out), "--jobs", "2"])
+    io = capsys.readouterr()
+    assert code == 3, io.err  # one capture failed: reported, the others done
+    assert "broken.png" in io.err
+    assert "processed 2 capture(s)" in io.out
+    for sub in ("a", "day2/b"):
+        d = out / sub
+        assert sorted(p.name for p in d.iterdir()) == [
+            "confidence.tiff",
+            "depth.png",
+            "depth.tiff",
+            "points.ply",
+            "result.json",
+        ]
+        info = json.loads((d / "result.json").read_text())
+        assert info["calibration_sha256"] == lfcam.calibration.file_hash(calf)
+        z = tifffile.imread(d / "depth.tiff")
+        assert z.dtype == np.float32
+        assert z.shape == cam.cal.rect_shape
+        ply = (d / "points.ply").read_bytes()
+        assert ply.startswith(b"ply\nformat binary_little_endian 1.0")
+        n = int(ply.split(b"element vertex ")[1].split(b"\n")[0])
+        assert n == int(np.isfinite(z).sum())
+    assert not list(out.rglob(".*tmp-*"))  # nothing half-written
+    # Resumable: complete outputs are skipped.
+    (inp / "broken.png").unlink()
+    assert main(["process", str(inp), "-c", str(calf), "-o", str(out)]) == 0
+    assert "skipped 2 complete" in capsys.readouterr().out
+
+
+def test_process_bad_calibration(tmp_path, capsys) -> None:
+    bad = tmp_path / "x.lfcal"
+    bad.write_bytes(b"not hdf5")
+    raw = tmp_path / "r.png"
+    lfcam.io.write_image(raw, np.zeros((10, 10, 3), np.uint8))
+    assert main(["process", str(raw), "-c", str(bad), "-o", str(tmp_path / "o")]) == 2
+    assert "x.lfcal" in capsys.readouterr().err
