@@ -373,7 +373,9 @@ def _cmd_process(args: argparse.Namespace) -> int:
         import multiprocessing as mp
         from concurrent.futures import ProcessPoolExecutor
 
-        ctx = mp.get_context("fork") if "fork" in mp.get_all_start_methods() else None
+        # "spawn": a forked child inherits OpenCV's and BLAS's thread pools in an
+        # undefined state and can hang; fresh interpreters are safe everywhere.
+        ctx = mp.get_context("spawn")
         with ProcessPoolExecutor(
             jobs,
             mp_context=ctx,
