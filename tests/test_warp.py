@@ -19,7 +19,7 @@ import pytest
 
 import lfcam
 import lfcam.warp
-from lfcam import _lfcam
+from lfcam import _lfcam, warp
 from lfcam.warp import INTERPOLATIONS
 
 RNG = np.random.default_rng(20240601)
@@ -225,7 +225,7 @@ def test_remap_of_maps_against_opencv_quantisation_bound() -> None:
     assert diff.max() > 1e-3  # OpenCV really does quantise here
     # ... and rectify's "bilinear-q32" reproduces it.
     ones = np.ones((h, w), np.float32)
-    q32 = lfcam.rectify(base, ones, [[0, 0, w, h]], xy[None], interp="bilinear-q32")[0]
+    q32 = warp.rectify(base, ones, [[0, 0, w, h]], xy[None], interp="bilinear-q32")[0]
     np.testing.assert_allclose(q32, theirs, rtol=0, atol=2e-5)
 
 
@@ -274,7 +274,7 @@ def test_rectify_matches_the_definition(dtype, channels, gain_channels, interp) 
     gains = make_gains(raw.shape[0], raw.shape[1], gain_channels)
     warps, masks = smooth_warps(crops, 38, 47)
     views = [5, 0, 11, 5]
-    out = lfcam.rectify(raw, gains, crops, warps, masks, interp=interp, views=views)
+    out = warp.rectify(raw, gains, crops, warps, masks, interp=interp, views=views)
     want = reference_rectify(raw, gains, crops, warps, masks, interp, views)
     assert out.dtype == np.float32
     assert out.shape == want.shape
@@ -311,7 +311,7 @@ def test_rectify_agrees_with_the_opencv_way(interp, flag, tol, dtype) -> None:
     raw = make_raw(3 * 36 + 6, 4 * 48 + 4, 3, dtype)
     gains = make_gains(raw.shape[0], raw.shape[1], 3)
     warps, masks = smooth_warps(crops, 44, 58)
-    ours = lfcam.rectify(raw, gains, crops, warps, masks, interp=interp)
+    ours = warp.rectify(raw, gains, crops, warps, masks, interp=interp)
     theirs = opencv_way(raw, gains, crops, warps, flag)
     both = ~np.isnan(ours).any(-1)
     assert both.mean() > 0.3
@@ -324,11 +324,11 @@ def test_bilinear_q32_is_the_legacy_opencv_path() -> None:
     raw = make_raw(45, 105, 2, np.float32)  # 2 channels: OpenCV 5.0's legacy path
     gains = np.ones((45, 105), np.float32)
     warps, _ = smooth_warps(crops, 36, 45)
-    ours = lfcam.rectify(raw, gains, crops, warps, interp="bilinear-q32")
+    ours = warp.rectify(raw, gains, crops, warps, interp="bilinear-q32")
     theirs = opencv_way(raw, gains, crops, warps, cv2.INTER_LINEAR)
     both = ~np.isnan(ours).any(-1)
     np.testing.assert_allclose(ours[both], theirs[both], rtol=0, atol=1e-7)
-    exact = lfcam.rectify(raw, gains, crops, warps, interp="bilinear")
+    exact = warp.rectify(raw, gains, crops, warps, interp="bilinear")
     assert np.nanmax(np.abs(exact - ours)) > 1e-3
 
 
@@ -353,7 +353,7 @@ def test_rectify_nan_rules() -> None:
     )[None, None]
     masks = np.ones(pts.shape[:3], bool)
     masks[0, 0, -1] = False
-    out = lfcam.rectify(raw, gains, crops, pts, masks)[0, 0]
+    out = warp.rectify(raw, gains, crops, pts, masks)[0, 0]
     np.testing.assert_allclose(out[0], raw[4, 10] / 255, rtol=1e-6)
     np.testing.assert_allclose(out[1], raw[9, 17] / 255, rtol=1e-6)
     assert np.isnan(out[2:6]).all()
@@ -366,13 +366,62 @@ def test_rectify_views_masks_and_defaults() -> None:
     raw = make_raw(50, 70, 3, np.uint8)
     gains = make_gains(50, 70, 3)
     warps, masks = smooth_warps(crops, 24, 33, nan_outside=False)
-    full = lfcam.rectify(raw, gains, crops, warps)
+    full = warp.rectify(raw, gains, crops, warps)
     assert full.shape == (4, 24, 33, 3)
-    some = lfcam.rectify(raw, gains, crops, warps, views=np.array([3, 1, 3], np.uint8))
+    some = warp.rectify(raw, gains, crops, warps, views=np.array([3, 1, 3], np.uint8))
     np.testing.assert_array_equal(some, full[[3, 1, 3]])
-    masked = lfcam.rectify(raw, gains, crops, warps, masks)
+    masked = warp.rectify(raw, gains, crops, warps, masks)
     np.testing.assert_array_equal(np.isnan(masked), np.isnan(full) | ~masks[..., None])
     np.testing.assert_array_equal(masked[masks], full[masks])
+
+
+def test_out_is_written_and_returned() -> None:
+    crops = grid_crops(2, 2, 30, 20)
+    raw = make_raw(50, 70, 3, np.uint8)
+    gains = make_gains(50, 70, 3)
+    warps, masks = smooth_warps(crops, 24, 33)
+    fresh = warp.rectify(raw, gains, crops, warps, masks, views=[2, 0])
+    out = np.full((2, 24, 33, 3), 7.0, np.float32)
+    assert warp.rectify(raw, gains, crops, warps, masks, views=[2, 0], out=out) is out
+    np.testing.assert_array_equal(out, fresh)  # every element written
+    src = make_raw(24, 33, 3, np.float32)
+    dst = np.full((24, 33, 3), 7.0, np.float32)
+    assert lfcam.remap_bilinear(src, warps[0], out=dst) is dst
+    np.testing.assert_array_equal(dst, lfcam.remap_bilinear(src, warps[0]))
+
+
+@pytest.mark.parametrize(
+    ("out", "needle"),
+    [
+        (
+            np.zeros((2, 24, 33, 3)),
+            r"^out: expected float32 of shape \(2, 24, 33, 3\), got float64",
+        ),
+        (np.zeros((2, 24, 33), np.float32), r"^out: expected float32 of shape"),
+        (np.zeros((2, 33, 24, 3), np.float32).transpose(0, 2, 1, 3), r"^out: must be C-contiguous"),
+        ([[0.0]], r"^out: expected a numpy.ndarray, got list"),
+    ],
+)
+def test_bad_out(out: object, needle: str) -> None:
+    crops = grid_crops(1, 2, 30, 20)
+    raw = make_raw(30, 70, 3, np.uint8)
+    warps, _ = smooth_warps(crops, 24, 33)
+    with pytest.raises(lfcam.InputError, match=needle):
+        warp.rectify(raw, make_gains(30, 70, 3), crops, warps, out=out)  # type: ignore[arg-type]
+
+
+def test_out_that_cannot_be_written() -> None:
+    src = make_raw(24, 33, 3, np.float32)
+    xy = np.zeros((24, 33, 2), np.float32)
+    frozen = np.zeros((24, 33, 3), np.float32)
+    frozen.flags.writeable = False
+    with pytest.raises(lfcam.InputError, match=r"^out: must be C-contiguous and writeable"):
+        lfcam.remap_bilinear(src, xy, out=frozen)
+    # The bindings refuse an output that is an input (borrowed read-only meanwhile).
+    with pytest.raises(lfcam.InputError, match=r"^out: cannot be written .* share memory"):
+        _lfcam.remap_bilinear(src, xy, src)
+    with pytest.raises(lfcam.InputError, match=r"^out: expected shape \[24, 33, 3\], got"):
+        _lfcam.remap_bilinear(src, xy, np.zeros((24, 33), np.float32))
 
 
 def test_rectify_large_frame_parallel_and_one_thread_agree() -> None:
@@ -383,9 +432,9 @@ def test_rectify_large_frame_parallel_and_one_thread_agree() -> None:
     before = lfcam.get_num_threads()
     try:
         lfcam.set_num_threads(1)
-        one = lfcam.rectify(raw, gains, crops, warps, masks)
+        one = warp.rectify(raw, gains, crops, warps, masks)
         lfcam.set_num_threads(3)
-        three = lfcam.rectify(raw, gains, crops, warps, masks)
+        three = warp.rectify(raw, gains, crops, warps, masks)
     finally:
         lfcam.set_num_threads(before)
     np.testing.assert_array_equal(one, three)
@@ -397,7 +446,7 @@ def test_rectify_inputs_are_not_modified() -> None:
     gains = make_gains(20, 45, 3)
     warps, masks = smooth_warps(crops, 12, 14)
     copies = [a.copy() for a in (raw, gains, crops, warps, masks)]
-    lfcam.rectify(raw, gains, crops, warps, masks)
+    warp.rectify(raw, gains, crops, warps, masks)
     for a, b in zip((raw, gains, crops, warps, masks), copies):
         np.testing.assert_array_equal(a, b)
 
@@ -440,7 +489,7 @@ def test_rectify_bad_inputs_name_the_argument(change: dict, needle: str) -> None
     for k, v in change.items():
         (kwargs if k in ("interp", "views") else args)[k] = v
     with pytest.raises(lfcam.InputError, match=needle) as info:
-        lfcam.rectify(*args.values(), **kwargs)
+        warp.rectify(*args.values(), **kwargs)
     assert isinstance(info.value, ValueError)
 
 
@@ -477,7 +526,7 @@ def test_rectify_unallocatable_output_raises_memory_error() -> None:
     gains = np.ones((10, 10), np.float32)
     warps = np.zeros((1, 300, 300, 2), np.float32)
     with pytest.raises(MemoryError):
-        lfcam.rectify(raw, gains, [[0, 0, 10, 10]], warps, views=np.zeros(10**6, np.int64))
+        warp.rectify(raw, gains, [[0, 0, 10, 10]], warps, views=np.zeros(10**6, np.int64))
 
 
 # --- the simulated camera ----------------------------------------------------------
@@ -507,7 +556,7 @@ def test_rectified_board_views_show_the_pattern(board_camera) -> None:
     white, board, pattern, truth = board_camera
     w = cv2.GaussianBlur(white.astype(np.float32) / 255, (0, 0), 3)
     gains = np.where(w > 0.05, 1 / np.maximum(w, 1e-6), 0).astype(np.float32)
-    views = lfcam.rectify(board, gains, truth["crops"], truth["warps"], truth["masks"])
+    views = warp.rectify(board, gains, truth["crops"], truth["warps"], truth["masks"])
     assert views.shape == (12, *truth["rect_shape"], 3)
     ref = views[int(truth["reference"])]
     pat = np.broadcast_to(pattern[..., None], views.shape[1:])
@@ -521,12 +570,12 @@ def test_rectified_board_views_show_the_pattern(board_camera) -> None:
     # A quarter of a pixel of misregistration shows in the same statistic (measured
     # 0.010 at 1/4 px, 0.015 at 1/2 px).
     shifted = truth["warps"] + np.float32(0.5)
-    off = lfcam.rectify(board, gains, truth["crops"], shifted, truth["masks"], views=[0])[0]
+    off = warp.rectify(board, gains, truth["crops"], shifted, truth["masks"], views=[0])[0]
     both = ~np.isnan(off).any(-1) & ~np.isnan(ref).any(-1)
     assert np.median(np.abs(off[both] - ref[both])) > 0.013
 
 
 def test_docstring_examples() -> None:
-    result = doctest.testmod(lfcam.warp, optionflags=doctest.NORMALIZE_WHITESPACE)
+    result = doctest.testmod(warp, optionflags=doctest.NORMALIZE_WHITESPACE)
     assert result.attempted > 0
     assert result.failed == 0

@@ -25,7 +25,11 @@ __version__: Final[str]
 def crop_lenslets(raw: NDArray[_Pixel], rects: NDArray[np.int64]) -> NDArray[_Pixel]:
     """Crop (N, 4) int64 rects (x0, y0, w, h) out of a C-contiguous (H, W[, C]) raw."""
 
-def remap_bilinear(src: NDArray[np.float32], map: NDArray[np.float32]) -> NDArray[np.float32]:
+def remap_bilinear(
+    src: NDArray[np.float32],
+    map: NDArray[np.float32],
+    out: NDArray[np.float32] | None = None,
+) -> NDArray[np.float32]:
     """Sample C-contiguous (H, W[, C]) float32 src at (H', W', 2) map positions (x, y)."""
 
 def rectify(
@@ -36,6 +40,7 @@ def rectify(
     masks: NDArray[np.uint8] | None,
     interp: str,
     views: NDArray[np.int64] | None,
+    out: NDArray[np.float32] | None = None,
 ) -> NDArray[np.float32]:
     """Gain, crop and remap views of raw into (M, H, W[, C]) float32 (NaN: no data)."""
 

@@ -50,6 +50,19 @@ def _as_float32(values: Any, name: str, shape: Sequence[int | str]) -> NDArray[n
     return np.ascontiguousarray(arr)
 
 
+def _check_out(out: Any, shape: tuple[int, ...]) -> NDArray[np.float32] | None:
+    """``out`` if it is a writeable, C-contiguous float32 array of ``shape``."""
+    if out is None:
+        return None
+    if not isinstance(out, np.ndarray):
+        raise InputError(f"out: expected a numpy.ndarray, got {type(out).__name__}")
+    if out.dtype != np.float32 or out.shape != shape:
+        raise InputError(f"out: expected float32 of shape {shape}, got {out.dtype} {out.shape}")
+    if not out.flags.c_contiguous or not out.flags.writeable:
+        raise InputError("out: must be C-contiguous and writeable")
+    return out
+
+
 def _check_channels(image: NDArray[Any], name: str) -> None:
     if image.ndim == 3 and image.shape[2] > _MAX_CHANNELS:
         raise InputError(
@@ -57,7 +70,9 @@ def _check_channels(image: NDArray[Any], name: str) -> None:
         )
 
 
-def remap_bilinear(src: ArrayLike, map: ArrayLike) -> NDArray[np.float32]:
+def remap_bilinear(
+    src: ArrayLike, map: ArrayLike, *, out: NDArray[np.float32] | None = None
+) -> NDArray[np.float32]:
     """Sample an image (or a map) at the positions of a map, with exact bilinear weights.
 
     Output pixel ``(r, c)`` is ``src`` interpolated at ``(x, y) = map[r, c]``. The weights
@@ -79,11 +94,14 @@ def remap_bilinear(src: ArrayLike, map: ArrayLike) -> NDArray[np.float32]:
         once.
     map : array_like of float32, shape (H', W', 2)
         Positions ``(x, y)`` in ``src``, ``x`` the column; pixel centres at integers.
+    out : numpy.ndarray of float32, optional
+        Written instead of a new array: C-contiguous, of the output's shape, sharing no
+        memory with the inputs. Reusing one saves the page faults of a fresh output.
 
     Returns
     -------
     numpy.ndarray of float32, shape (H', W') or (H', W', C)
-        A new array, 2-D if ``src`` is.
+        A new array (or ``out``), 2-D if ``src`` is.
 
     Raises
     ------
@@ -108,7 +126,8 @@ def remap_bilinear(src: ArrayLike, map: ArrayLike) -> NDArray[np.float32]:
     src_arr = as_image(src, "src", dtypes=(np.float32,))
     _check_channels(src_arr, "src")
     map_arr = _as_float32(map, "map", ("H'", "W'", 2))
-    return _lfcam.remap_bilinear(src_arr, map_arr)
+    out_arr = _check_out(out, map_arr.shape[:2] + src_arr.shape[2:])
+    return _lfcam.remap_bilinear(src_arr, map_arr, out_arr)
 
 
 def rectify(
@@ -120,6 +139,7 @@ def rectify(
     *,
     interp: Interp = "bilinear",
     views: ArrayLike | None = None,
+    out: NDArray[np.float32] | None = None,
 ) -> NDArray[np.float32]:
     """Rectify the views of a raw frame: gain, crop and remap in one parallel pass.
 
@@ -169,11 +189,15 @@ def rectify(
     views : array_like of int, shape (M,), optional
         Indices of the views to rectify, in output order (repeats allowed). Default:
         all ``N``.
+    out : numpy.ndarray of float32, optional
+        Written instead of a new array: C-contiguous, of the output's shape, sharing no
+        memory with the inputs. Processing many captures, reusing one saves the page
+        faults of a fresh output (a third of the time at 12 x 2000 x 1350 x 3).
 
     Returns
     -------
     numpy.ndarray of float32, shape (M, H_rect, W_rect) or (M, H_rect, W_rect, C)
-        ``out[j]`` is view ``views[j]``; 3-D for a 2-D ``raw``.
+        A new array (or ``out``): ``[j]`` is view ``views[j]``; 3-D for a 2-D ``raw``.
 
     Raises
     ------
@@ -191,12 +215,12 @@ def rectify(
     Examples
     --------
     >>> import numpy as np
-    >>> import lfcam
+    >>> import lfcam.warp
     >>> raw = np.arange(12, dtype=np.uint8).reshape(3, 4) * 10
     >>> gains = np.full((3, 4), 2.0, dtype=np.float32)
     >>> crops = [[2, 0, 2, 3]]  # the right half
     >>> warps = np.array([[[[0.5, 0.0], [1.0, 0.5], [1.5, 0.0]]]], dtype=np.float32)
-    >>> out = lfcam.rectify(raw, gains, crops, warps)
+    >>> out = lfcam.warp.rectify(raw, gains, crops, warps)
     >>> out.shape
     (1, 1, 3)
     >>> np.round(out * 255 / 2, 3)
@@ -247,4 +271,8 @@ def rectify(
             raise InputError(
                 f"views[{j}]: view index {int(views_arr[j])} is out of range for {n} views"
             )
-    return _lfcam.rectify(raw_arr, gains_arr, crops_arr, warps_arr, masks_arr, interp, views_arr)
+    n_out = n if views_arr is None else len(views_arr)
+    out_arr = _check_out(out, (n_out, h, w, *raw_arr.shape[2:]))
+    return _lfcam.rectify(
+        raw_arr, gains_arr, crops_arr, warps_arr, masks_arr, interp, views_arr, out_arr
+    )

@@ -479,9 +479,10 @@ impl<T: RawSample, const C: usize, const G: usize> Taps for Direct<'_, T, C, G> 
 
 /// Output rows per task, at least: a task first computes the gained raw pixels its
 /// footprints need (a band a little taller than the task, see [`Job::segment`]), so
-/// short tasks would recompute the rows shared with their neighbours. Measured with
-/// the criterion bench (full size, 1 thread): 4 rows 118 ms, 16 rows 85 ms, 32 rows
-/// 83 ms; 16 keeps tasks small enough to balance two threads on small frames.
+/// short tasks would recompute the rows shared with their neighbours: with 32 rows
+/// (about 29 raw rows at the usual scale) the band is some 15% taller than the rows it
+/// serves. Measured with benchmarks/run.py (full size, 2 threads): 16, 32 and 64 rows
+/// all take 114-122 ms, within the noise; 32 keeps hundreds of tasks to balance.
 const MIN_TASK_ROWS: usize = 32;
 
 /// The band of gained pixels is computed when its area is at most this many times the

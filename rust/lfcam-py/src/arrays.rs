@@ -168,17 +168,57 @@ pub fn new_array<'py, T: Element>(
         .cast_into::<PyArrayDyn<T>>()?)
 }
 
-/// Runs `kernel` on the elements of `out` (a fresh array from [`new_array`]) with the
-/// GIL released, inside lfcam's pool; core errors become exceptions.
+/// The array a kernel writes: the caller's `out` after checking its dtype (`name`, as
+/// numpy spells it), shape and contiguity, or a fresh one from [`new_array`].
+pub fn output_array<'py, T: Element>(
+    py: Python<'py>,
+    out: Option<&Bound<'py, PyAny>>,
+    shape: &[usize],
+    name: &str,
+) -> PyResult<Bound<'py, PyArrayDyn<T>>> {
+    let Some(out) = out else {
+        return new_array::<T>(py, shape);
+    };
+    let arr = as_untyped(out, "out")?;
+    if !arr.dtype().is_equiv_to(&dtype::<T>(py)) {
+        return Err(input_error(
+            py,
+            "out",
+            format!("expected dtype {name}, got {}", dtype_name(arr)),
+        ));
+    }
+    if arr.shape() != shape {
+        return Err(input_error(
+            py,
+            "out",
+            format!("expected shape {shape:?}, got {:?}", arr.shape()),
+        ));
+    }
+    if !arr.is_c_contiguous() {
+        return Err(input_error(py, "out", "must be C-contiguous"));
+    }
+    Ok(arr.cast::<PyArrayDyn<T>>()?.clone())
+}
+
+/// Runs `kernel` on the elements of `out` (from [`output_array`]) with the GIL
+/// released, inside lfcam's pool; core errors become exceptions.
 pub fn fill<T, F>(out: &Bound<'_, PyArrayDyn<T>>, function: &str, kernel: F) -> PyResult<()>
 where
     T: Element + Send,
     F: FnOnce(&mut [T]) -> lfcam_core::Result<()> + Send,
 {
     let py = out.py();
-    let mut rw = out
-        .try_readwrite()
-        .map_err(|e| internal_error(py, function, format!("output borrow: {e}")))?;
+    // A fresh array is always writeable; a caller's may be read-only or share memory
+    // with an input (which is borrowed read-only meanwhile).
+    let mut rw = out.try_readwrite().map_err(|e| {
+        input_error(
+            py,
+            "out",
+            format!(
+                "cannot be written ({e}): is it read-only, or does it share memory with an input?"
+            ),
+        )
+    })?;
     let slice = rw
         .as_slice_mut()
         .map_err(|e| internal_error(py, function, format!("output slice: {e}")))?;

@@ -6,7 +6,7 @@ use numpy::{Element, PyArrayDescrMethods, PyUntypedArrayMethods, dtype};
 use pyo3::prelude::*;
 
 use crate::arrays::{
-    as_untyped, c_slice, dtype_name, fill, image_view, new_array, readonly, rect_rows, typed,
+    as_untyped, c_slice, dtype_name, fill, image_view, output_array, readonly, rect_rows, typed,
 };
 use crate::errors::{guarded, input_error, to_pyerr};
 
@@ -19,9 +19,10 @@ use crate::errors::{guarded, input_error, to_pyerr};
 /// masks: None or (N, Hr, Wr) uint8 (0: no data), e.g. a bool mask viewed as uint8.
 /// interp: "bilinear", "bilinear-exact", "bilinear-q32" or "bicubic".
 /// views: None (all) or (M,) int64 view indices.
-/// Returns a new (M, Hr, Wr) or (M, Hr, Wr, C) float32 array.
+/// out: None, or a float32 C-contiguous array of the output's shape to write into.
+/// Returns a new (M, Hr, Wr) or (M, Hr, Wr, C) float32 array, or `out`.
 #[pyfunction]
-#[pyo3(signature = (raw, gains, crops, warps, masks, interp, views))]
+#[pyo3(signature = (raw, gains, crops, warps, masks, interp, views, out=None))]
 #[allow(clippy::too_many_arguments)]
 pub fn rectify<'py>(
     py: Python<'py>,
@@ -32,6 +33,7 @@ pub fn rectify<'py>(
     masks: Option<&Bound<'py, PyAny>>,
     interp: &str,
     views: Option<&Bound<'py, PyAny>>,
+    out: Option<&Bound<'py, PyAny>>,
 ) -> PyResult<Bound<'py, PyAny>> {
     guarded(py, "rectify", || {
         let interp: Interp = interp.parse().map_err(|e| to_pyerr(py, e))?;
@@ -43,6 +45,7 @@ pub fn rectify<'py>(
             masks,
             views,
             interp,
+            out,
         };
         let dt = raw_arr.dtype();
         if dt.is_equiv_to(&dtype::<u8>(py)) {
@@ -72,6 +75,7 @@ struct Args<'a, 'py> {
     masks: Option<&'a Bound<'py, PyAny>>,
     views: Option<&'a Bound<'py, PyAny>>,
     interp: Interp,
+    out: Option<&'a Bound<'py, PyAny>>,
 }
 
 fn rectify_typed<'py, T>(
@@ -157,7 +161,7 @@ where
     } else {
         vec![m, rh, rw, c]
     };
-    let out = new_array::<f32>(py, &shape)?;
+    let out = output_array::<f32>(py, args.out, &shape, "float32")?;
     let interp = args.interp;
     fill(&out, "rectify", |slice| {
         lfcam_core::rectify(raw_v, gains_v, &crops, maps, &views, interp, slice)

@@ -4,19 +4,22 @@ use lfcam_core::remap;
 use numpy::PyUntypedArrayMethods;
 use pyo3::prelude::*;
 
-use crate::arrays::{fill, image_view, new_array, typed};
+use crate::arrays::{fill, image_view, output_array, typed};
 use crate::errors::{guarded, input_error};
 
 /// Samples an image at the positions of a map (exact bilinear, NaN for no data).
 ///
 /// src: (H, W) or (H, W, C) float32, C-contiguous, C <= 4.
 /// map: (H', W', 2) float32, C-contiguous, positions (x, y) in src.
-/// Returns a new (H', W') or (H', W', C) float32 array.
+/// out: None, or a float32 C-contiguous array of the output's shape to write into.
+/// Returns a new (H', W') or (H', W', C) float32 array, or `out`.
 #[pyfunction]
+#[pyo3(signature = (src, map, out=None))]
 pub fn remap_bilinear<'py>(
     py: Python<'py>,
     src: &Bound<'py, PyAny>,
     map: &Bound<'py, PyAny>,
+    out: Option<&Bound<'py, PyAny>>,
 ) -> PyResult<Bound<'py, PyAny>> {
     guarded(py, "remap_bilinear", || {
         let src_ro = typed::<f32>(src, "src", "float32")?;
@@ -37,7 +40,7 @@ pub fn remap_bilinear<'py>(
         if src_ro.ndim() == 3 {
             shape.push(src_v.channels());
         }
-        let out = new_array::<f32>(py, &shape)?;
+        let out = output_array::<f32>(py, out, &shape, "float32")?;
         fill(&out, "remap_bilinear", |slice| {
             remap::remap_bilinear(src_v, map_v, slice)
         })?;
