@@ -160,23 +160,32 @@ def _same_where_defined(atol: float) -> Callable[[Any, Any], bool]:
     return same
 
 
-def _rectify_case(size: str, interp: str, flag: int) -> Case:
+def _rectify_case(size: str, interp: str, flag: int, per_view: bool = False) -> Case:
     d = _rectify_inputs(size)
     (fw, fh), _, (rw, rh) = _RECTIFY_SIZES[size]
     raw, gains, crops, warps, masks = d["raw"], d["gains"], d["crops"], d["warps"], d["masks"]
 
     def opencv_way() -> list[np.ndarray]:
+        # The gains applied to the whole frame at once: the faster of the two ways.
         g = raw.astype(np.float32) * np.float32(1 / 255) * gains
         return [
             cv2.remap(g[y : y + h, x : x + w], warps[i], None, flag)
             for i, (x, y, w, h) in enumerate(crops)
         ]
 
+    def opencv_way_per_view() -> list[np.ndarray]:
+        outs = []
+        for i, (x, y, w, h) in enumerate(crops):
+            crop = raw[y : y + h, x : x + w].astype(np.float32) * np.float32(1 / 255)
+            crop *= gains[y : y + h, x : x + w]
+            outs.append(cv2.remap(crop, warps[i], None, flag))
+        return outs
+
     kind = "cubic" if flag == cv2.INTER_CUBIC else "linear"
     return Case(
         lfcam=lambda: lfcam.warp.rectify(raw, gains, crops, warps, masks, interp=interp),
-        reference=opencv_way,
-        reference_name=f"gain*raw, crop, cv2.remap {kind}",
+        reference=opencv_way_per_view if per_view else opencv_way,
+        reference_name=f"{'per view: ' if per_view else ''}gain*raw, crop, cv2.remap {kind}",
         shape=f"{fw}x{fh}x3 u8 -> 12x{rw}x{rh}x3, {masks.mean():.0%} kept",
         same=_same_where_defined(1e-5),
     )
@@ -185,6 +194,12 @@ def _rectify_case(size: str, interp: str, flag: int) -> Case:
 @row("rectify")
 def rectify_bilinear(size: str) -> Case:
     return _rectify_case(size, "bilinear", cv2.INTER_LINEAR)
+
+
+@row("rectify vs per-view gains")
+def rectify_per_view(size: str) -> Case:
+    # The OpenCV way view by view: each crop gained, then remapped.
+    return _rectify_case(size, "bilinear", cv2.INTER_LINEAR, per_view=True)
 
 
 @row("rectify, outputs reused")
