@@ -20,7 +20,6 @@ import math
 import os
 import re
 import sys
-import tempfile
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -35,7 +34,14 @@ from .calibration import Calibration
 from .errors import CalibrationError, InputError
 from .flow import FlowParams, dis_flow, prepare
 from .geometric import coarse_homography, register_view, remap
-from .io import BAYER_PATTERNS, read_image, read_raw, to_float, write_image
+from .io import (
+    BAYER_PATTERNS,
+    read_image,
+    read_raw,
+    to_float,
+    write_image_atomic,
+    write_text_atomic,
+)
 from .layout import find_layout
 from .photometric import white_gains
 
@@ -335,37 +341,11 @@ class CalibrationRun:
             "report_png": stem.with_name(stem.name + ".report.png"),
             "calibration": out,
         }
-        _atomic_text(paths["report_json"], json.dumps(self.calibration.report, indent=2))
+        write_text_atomic(paths["report_json"], json.dumps(self.calibration.report, indent=2))
         fig = calibration_figure(self.calibration, self.white, self.residuals)
-        fd, tmp = tempfile.mkstemp(prefix=".report.", suffix=".png", dir=out.parent)
-        os.close(fd)
-        try:
-            write_image(tmp, fig)
-            os.chmod(tmp, _umask_mode())
-            os.replace(tmp, paths["report_png"])
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        write_image_atomic(paths["report_png"], fig)
         self.calibration.save(out)
         return paths
-
-
-def _umask_mode() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return 0o666 & ~mask
-
-
-def _atomic_text(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-        os.chmod(tmp, _umask_mode())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def calibrate(cal_dir: str | os.PathLike[str], **kwargs: Any) -> Calibration:

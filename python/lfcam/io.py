@@ -7,8 +7,10 @@ float32 goes to TIFF.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
@@ -106,27 +108,47 @@ def write_image(path: str | os.PathLike[str], img: np.ndarray, *, compression: i
         )
 
 
-def write_image_atomic(path: str | os.PathLike[str], img: np.ndarray, **kw: int) -> None:
-    """:func:`write_image` to a temporary name beside ``path``, then rename.
+def _file_mode() -> int:
+    """Permissions a new file gets under the current umask (mkstemp makes 0600)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return 0o666 & ~mask
 
-    A failed write never leaves a half-written ``path`` behind.
+
+@contextlib.contextmanager
+def atomic_output(path: str | os.PathLike[str]) -> Iterator[Path]:
+    """Yield a temporary path beside ``path``; on success rename it to ``path``.
+
+    On any error the temporary file is removed and ``path`` is left untouched,
+    so a failed write never leaves a half-written file behind.
     """
     p = Path(path)
-    if p.suffix.lower() not in _WRITABLE:
-        raise InputError(f"{p}: unsupported output type {p.suffix!r} (use .png, .tif or .tiff)")
     if not p.parent.is_dir():
         raise InputError(f"{p}: folder {p.parent} does not exist")
     fd, tmp = tempfile.mkstemp(prefix=f".{p.stem}.", suffix=p.suffix, dir=p.parent)
     os.close(fd)
     try:
-        write_image(tmp, img, **kw)
-        mask = os.umask(0)
-        os.umask(mask)
-        os.chmod(tmp, 0o666 & ~mask)
+        yield Path(tmp)
+        os.chmod(tmp, _file_mode())
         os.replace(tmp, p)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def write_image_atomic(path: str | os.PathLike[str], img: np.ndarray, **kw: int) -> None:
+    """:func:`write_image` to a temporary name beside ``path``, then rename."""
+    p = Path(path)
+    if p.suffix.lower() not in _WRITABLE:
+        raise InputError(f"{p}: unsupported output type {p.suffix!r} (use .png, .tif or .tiff)")
+    with atomic_output(p) as tmp:
+        write_image(tmp, img, **kw)
+
+
+def write_text_atomic(path: str | os.PathLike[str], text: str) -> None:
+    """Write a text file atomically (see :func:`atomic_output`)."""
+    with atomic_output(path) as tmp:
+        tmp.write_text(text)
 
 
 def demosaic(raw: np.ndarray, pattern: str, *, name: str = "raw") -> np.ndarray:

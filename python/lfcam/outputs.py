@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from .calibration import Calibration
-from .io import write_image
+from .io import _file_mode, write_image
 from .pipeline import CaptureResult
 
 __all__ = ["colour_depth", "points_from_depth", "write_capture", "write_ply"]
@@ -184,11 +184,10 @@ def write_capture(
             **(extra or {}),
         }
         (tmp / "result.json").write_text(json.dumps(info, indent=2, default=str))
-        mask = os.umask(0)
-        os.umask(mask)
+        mode = _file_mode()
         for p in tmp.rglob("*"):
-            os.chmod(p, (0o777 if p.is_dir() else 0o666) & ~mask)
-        os.chmod(tmp, 0o777 & ~mask)
+            os.chmod(p, (mode | 0o111) if p.is_dir() else mode)
+        os.chmod(tmp, mode | 0o111)
         if out.exists():
             shutil.rmtree(out)
         os.replace(tmp, out)
