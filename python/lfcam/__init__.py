@@ -12,7 +12,8 @@ from lfcam.calibration import Calibration
 from lfcam.crop import crop_lenslets
 from lfcam.depth import DepthResult, depth_from_views, estimate_depth
 from lfcam.errors import CalibrationError, InputError, LfcamError, NumericalError
-from lfcam.io import read_image, read_raw
+from lfcam.io import read_image, read_pfm, read_raw, write_pfm
+from lfcam.lightfield import LightField
 from lfcam.pattern import make_pattern
 from lfcam.pipeline import CaptureResult, process_capture, rectify
 from lfcam.simulator import SimConfig, SimulationResult, simulate
@@ -27,6 +28,7 @@ __all__ = [
     "DepthResult",
     "InputError",
     "LfcamError",
+    "LightField",
     "NumericalError",
     "SimConfig",
     "SimulationResult",
@@ -41,10 +43,12 @@ __all__ = [
     "nan_median",
     "process_capture",
     "read_image",
+    "read_pfm",
     "read_raw",
     "rectify",
     "remap_bilinear",
     "set_num_threads",
     "simulate",
     "triangulate",
+    "write_pfm",
 ]
