@@ -7,25 +7,50 @@ with ``result.json`` is complete.
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
 import json
 import os
 import shutil
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
 
 from .calibration import Calibration
-from .io import _file_mode, write_image
+from .io import _file_mode, write_image, write_pfm
 from .pipeline import CaptureResult
 
-__all__ = ["colour_depth", "points_from_depth", "write_capture", "write_ply"]
+if TYPE_CHECKING:
+    from .depth import DepthResult
+    from .lightfield import LightField
+
+__all__ = [
+    "colour_depth",
+    "points_from_depth",
+    "points_from_lightfield",
+    "write_capture",
+    "write_lightfield",
+    "write_ply",
+]
 
 
-def colour_depth(depth: np.ndarray, lo: float | None = None, hi: float | None = None) -> np.ndarray:
-    """Depth (m) -> RGB preview with a labelled colour bar (TURBO, near = red)."""
+def colour_depth(
+    depth: np.ndarray,
+    lo: float | None = None,
+    hi: float | None = None,
+    *,
+    unit: str = "m",
+    near_high: bool = False,
+) -> np.ndarray:
+    """Depth (m) -> RGB preview with a labelled colour bar (TURBO, near = red).
+
+    ``unit`` labels the bar; ``near_high`` says larger values are nearer (disparity),
+    so they are the red ones.
+    """
     finite = np.isfinite(depth)
     if lo is None or hi is None:
         if finite.any():
@@ -34,6 +59,8 @@ def colour_depth(depth: np.ndarray, lo: float | None = None, hi: float | None = 
             lo, hi = 0.0, 1.0
     hi = max(hi, lo + 1e-6)
     t = np.clip((np.nan_to_num(depth, nan=hi) - lo) / (hi - lo), 0, 1)
+    if near_high:
+        t = 1 - t
     bgr = cv2.applyColorMap(np.round((1 - t) * 255).astype(np.uint8), cv2.COLORMAP_TURBO)
     bgr[~finite] = 0
     H = depth.shape[0]
@@ -44,11 +71,11 @@ def colour_depth(depth: np.ndarray, lo: float | None = None, hi: float | None = 
     bar[:, pad : pad + bar_w] = np.repeat(col, bar_w, axis=1)
     for k in range(6):
         y = round(k / 5 * (H - 1))
-        z = lo + (hi - lo) * k / 5
+        z = hi - (hi - lo) * k / 5 if near_high else lo + (hi - lo) * k / 5
         yt = min(max(y + 5, 12), H - 3)
         cv2.putText(
             bar,
-            f"{z:.3g} m",
+            f"{z:.3g} {unit}",
             (pad + bar_w + 4, yt),
             cv2.FONT_HERSHEY_SIMPLEX,
             0.4,
@@ -135,9 +162,7 @@ def write_capture(
     and, with ``save_views``, ``views/view_RR_CC.png``.
     """
     out = Path(out_dir)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
-    try:
+    with _atomic_folder(out) as tmp:
         d = result.depth
         ref_view = result.views[cal.reference]
         depth = d.depth if d.depth is not None else d.relative
@@ -184,6 +209,20 @@ def write_capture(
             **(extra or {}),
         }
         (tmp / "result.json").write_text(json.dumps(info, indent=2, default=str))
+    return out
+
+
+@contextlib.contextmanager
+def _atomic_folder(out: Path) -> Iterator[Path]:
+    """Yield a temporary folder beside ``out``; when the block succeeds, it becomes ``out``.
+
+    An existing ``out`` is replaced only then; on any error the temporary folder is
+    removed and ``out`` is left as it was.
+    """
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+    try:
+        yield tmp
         mode = _file_mode()
         for p in tmp.rglob("*"):
             os.chmod(p, (mode | 0o111) if p.is_dir() else mode)
@@ -194,4 +233,174 @@ def write_capture(
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    return out
+
+
+def points_from_lightfield(depth: np.ndarray, lf: LightField) -> tuple[np.ndarray, np.ndarray]:
+    """3-D points (metres) of finite depths, in the reference camera's frame.
+
+    Pinhole model of the HCI rig: X right, Y down, Z along the optical axis, origin at
+    the reference camera; focal length ``f_px`` from the rig parameters. The views
+    converge (shifted sensors): the principal point of view i is the image centre
+    moved by ``-offset * o_i'``, with ``o_i'`` its parallax vector relative to the
+    grid's centre (infinity, at disparity ``-offset``, appears there).
+
+    Returns
+    -------
+    points : (M, 3) float32
+    index : (M, 2) int64
+        Row and column of each point in the reference view.
+    """
+    p = lf.parameters
+    if p is None:
+        raise ValueError("points_from_lightfield: the light field has no rig parameters")
+    H, W = depth.shape
+    f = p.focal_px(W)
+    offset = p.offset_for(W)
+    if p.grid is not None:
+        r_mid, c_mid = (p.grid[0] - 1) / 2.0, (p.grid[1] - 1) / 2.0
+    else:
+        r_mid = (min(lf.rows) + max(lf.rows)) / 2.0
+        c_mid = (min(lf.cols) + max(lf.cols)) / 2.0
+    sx = -1.0 if "x" in lf.flip else 1.0
+    sy = -1.0 if "y" in lf.flip else 1.0
+    r_ref, c_ref = lf.reference_rc
+    cx = (W - 1) / 2.0 + offset * sx * (c_ref - c_mid)
+    cy = (H - 1) / 2.0 + offset * sy * (r_ref - r_mid)
+    vv, uu = np.nonzero(np.isfinite(depth))
+    Z = depth[vv, uu].astype(np.float64)
+    X = (uu - cx) * Z / f
+    Y = (vv - cy) * Z / f
+    return np.column_stack([X, Y, Z]).astype(np.float32), np.stack([vv, uu], 1)
+
+
+def _finite_or_none(obj: Any) -> Any:
+    """``obj`` with NaN and infinite floats replaced by None (strict JSON)."""
+    if isinstance(obj, dict):
+        return {k: _finite_or_none(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite_or_none(v) for v in obj]
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return None
+    return obj
+
+
+def _median(x: np.ndarray) -> float | None:
+    x = x[np.isfinite(x)]
+    return float(np.median(x)) if x.size else None
+
+
+def _p1_p99(x: np.ndarray) -> list[float] | None:
+    x = x[np.isfinite(x)]
+    return [float(v) for v in np.percentile(x, [1, 99])] if x.size else None
+
+
+def write_lightfield(
+    out_dir: str | os.PathLike[str],
+    lf: LightField,
+    result: DepthResult,
+    *,
+    timings: dict[str, float] | None = None,
+    extra: dict[str, Any] | None = None,
+) -> tuple[Path, dict[str, Any]]:
+    """Write the depth of a :class:`~lfcam.LightField` to a folder, atomically.
+
+    Files: ``disparity.tiff`` (float32, px per grid step, HCI sign, NaN unknown),
+    ``disparity.pfm`` (the same, as the HCI benchmark reads it), ``disparity.png``
+    (preview, near = red), ``confidence.tiff`` and ``result.json``; with rig
+    parameters (``lf.metric``) also ``depth.tiff`` (float32 m), ``depth.png`` and
+    ``points.ply`` (the reference camera's frame, metres), as ``lfcam process``
+    writes them. Without, no depth is made up: ``result.json`` says so. With ground
+    truth for the reference view, ``result.json`` has the HCI benchmark's BadPix0.07
+    and MSE x 100 over the full image and without a 15 px border.
+
+    Returns
+    -------
+    path : Path
+        The folder.
+    info : dict
+        What ``result.json`` holds.
+    """
+    from .lightfield import BADPIX_THRESHOLD, HCI_BORDER, disparity_metrics
+
+    out = Path(out_dir)
+    disp = result.parallax.astype(np.float32)
+    finite = np.isfinite(disp)
+    with _atomic_folder(out) as tmp:
+        write_image(tmp / "disparity.tiff", disp)
+        write_pfm(tmp / "disparity.pfm", disp)
+        write_image(tmp / "disparity.png", colour_depth(disp, unit="px", near_high=True))
+        write_image(tmp / "confidence.tiff", result.confidence.astype(np.float32))
+        stats: dict[str, Any] = {
+            "coverage": float(finite.mean()),
+            "disparity_median_px": _median(disp),
+            "disparity_p1_p99_px": _p1_p99(disp),
+        }
+        info: dict[str, Any] = {
+            "source": lf.source,
+            "layout": lf.layout,
+            "rows": lf.rows,
+            "cols": lf.cols,
+            "reference": list(lf.reference_rc),
+            "n_views": lf.n_views,
+            "image_shape": list(lf.image_shape),
+            "flip": lf.flip,
+            "offsets": "o_i = (-(c - c_ref), -(r - r_ref)) px per unit disparity"
+            + (f", axes flipped: {lf.flip!r}" if lf.flip else ""),
+            "disparity_units": "px per grid step; positive nearer than the zero-parallax plane"
+            " (HCI convention: centre pixel (x, y) appears in view (r, c) at"
+            " (x - d (c - c_ref), y - d (r - r_ref)))",
+            "metric": lf.metric,
+        }
+        if lf.metric and lf.parameters is not None:
+            depth = lf.disparity_to_depth(disp)
+            write_image(tmp / "depth.tiff", depth)
+            write_image(tmp / "depth.png", colour_depth(depth))
+            pts, idx = points_from_lightfield(depth, lf)
+            ref = _to_u8(lf.to_float()[lf.reference])
+            colours = ref[idx[:, 0], idx[:, 1]]
+            if colours.ndim == 1:
+                colours = np.repeat(colours[:, None], 3, 1)
+            write_ply(tmp / "points.ply", pts, colours)
+            info["depth_units"] = "m"
+            info["xy_units"] = "m"
+            info["points_frame"] = (
+                "reference camera: X right, Y down, Z along the optical axis, metres"
+            )
+            info["parameters"] = dataclasses.asdict(lf.parameters)
+            stats["depth_median_m"] = _median(depth)
+            stats["depth_p1_p99_m"] = _p1_p99(depth)
+            stats["points"] = len(pts)
+        else:
+            info["depth_units"] = None
+            info["note"] = (
+                "no metric rig parameters (parameters.cfg with baseline_mm, focal_length_mm,"
+                " sensor_size_mm, image_resolution_x_px and offset or focus_distance_m):"
+                " disparity only, no depth or point cloud"
+            )
+        stats["confidence_median"] = _median(np.where(finite, result.confidence, np.nan))
+        stats["flow_residual_median_px"] = _median(result.residual)
+        stats["perpendicular_median_px"] = _median(result.perpendicular)
+        info["statistics"] = stats
+        if lf.ground_truth is not None:
+            gt_info: dict[str, Any] = {"view": list(lf.ground_truth_view or lf.reference_rc)}
+            if lf.ground_truth_view == lf.reference_rc:
+                gt_info["badpix_threshold_px"] = BADPIX_THRESHOLD
+                gt_info["full"] = disparity_metrics(disp, lf.ground_truth)
+                gt_info[f"without_{HCI_BORDER}px_border"] = disparity_metrics(
+                    disp, lf.ground_truth, border=HCI_BORDER
+                )
+                gt_info["note"] = (
+                    "BadPix: % of pixels with |d - gt| > threshold, a missing estimate"
+                    " counts as bad; MSE x 100 over the pixels with an estimate"
+                )
+            else:
+                gt_info["note"] = (
+                    "the ground truth belongs to another view than the reference: not scored"
+                )
+            info["ground_truth"] = gt_info
+        info["timings_s"] = {**result.timings, **(timings or {})}
+        info.update(extra or {})
+        info["files"] = [*sorted(p.name for p in tmp.iterdir()), "result.json"]
+        info = _finite_or_none(info)
+        (tmp / "result.json").write_text(json.dumps(info, indent=2, default=str, allow_nan=False))
+    return out, info
