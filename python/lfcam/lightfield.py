@@ -256,7 +256,7 @@ def disparity_metrics(
     Returns
     -------
     dict
-        ``badpix`` (percent of pixels with ``|d - gt| > threshold``; a missing (NaN)
+        ``badpix_percent`` (percent of pixels with ``|d - gt| > threshold``; a missing (NaN)
         estimate counts as bad), ``mse_x100`` (100 x the mean squared error over the
         pixels with an estimate), ``coverage`` (share of pixels with an estimate) and
         ``pixels`` scored.
@@ -275,7 +275,7 @@ def disparity_metrics(
     have = np.isfinite(err)
     bad = ~have | (np.abs(np.where(have, err, 0.0)) > threshold)
     return {
-        "badpix": float(100.0 * bad.mean()) if bad.size else math.nan,
+        "badpix_percent": float(100.0 * bad.mean()) if bad.size else math.nan,
         "mse_x100": float(100.0 * np.mean(err[have] ** 2)) if have.any() else math.nan,
         "coverage": float(have.mean()) if have.size else 0.0,
         "pixels": int(ok.sum()),
