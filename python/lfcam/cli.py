@@ -424,14 +424,20 @@ def _add_depth_views(sub: Any) -> None:
             "border). OUT_DIR appears complete or not at all."
         ),
     )
-    p.add_argument("folder", type=Path, help="the folder of views")
-    p.add_argument("-o", "--output", type=Path, required=True, help="output folder")
+    p.add_argument("folder", type=Path, metavar="FOLDER", help="the folder of views")
+    p.add_argument(
+        "-o", "--output", type=Path, required=True, metavar="OUT_DIR", help="output folder"
+    )
     p.add_argument(
         "--views",
+        metavar="ROWS,COLS",
         help="subset ROWS,COLS as Python slices of grid indices, e.g. 3:6,3:7 (default: all)",
     )
     p.add_argument(
-        "--reference", type=_rc, help="reference view ROW,COL (default: the grid's centre)"
+        "--reference",
+        type=_rc,
+        metavar="ROW,COL",
+        help="reference view, absolute grid indices (default: the grid's centre)",
     )
     p.add_argument(
         "--flip",

@@ -385,8 +385,8 @@ class LightField:
 
     Notes
     -----
-    ``o_i = s_x (-(c_i - c_ref)), s_y (-(r_i - r_ref)))`` with ``s_x, s_y = -1`` for
-    a flipped axis, else ``+1``: the reference pixel ``p`` appears at ``p + o_i s``
+    ``o_i = (-s_x (c_i - c_ref), -s_y (r_i - r_ref))`` with ``s_x, s_y = -1`` for a
+    flipped axis, else ``+1``: the reference pixel ``p`` appears at ``p + o_i s``
     in view ``i`` (DESIGN.md section 3), and ``s`` equals the HCI benchmark's
     disparity (px per grid step). A subset keeps absolute indices, so rows 2, 4, 6
     give offsets of 2 px per unit ``s``, and ``s`` is still disparity per grid step.
@@ -411,7 +411,10 @@ class LightField:
         ground_truth: Any = None,
         ground_truth_view: tuple[int, int] | None = None,
     ) -> None:
-        arr = np.asarray(views)
+        try:
+            arr = np.asarray(views)
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"views: not an array of images ({exc})") from None
         if not (arr.dtype in (np.uint8, np.uint16) or arr.dtype.kind == "f"):
             raise InputError(f"views: expected uint8, uint16 or float pixels, not {arr.dtype}")
         if positions is None:

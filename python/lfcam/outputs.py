@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 
 from .calibration import Calibration
+from .errors import InputError
 from .io import _file_mode, write_image, write_pfm
 from .pipeline import CaptureResult
 
@@ -252,7 +253,7 @@ def points_from_lightfield(depth: np.ndarray, lf: LightField) -> tuple[np.ndarra
     """
     p = lf.parameters
     if p is None:
-        raise ValueError("points_from_lightfield: the light field has no rig parameters")
+        raise InputError("lf: the light field has no rig parameters; no metric points")
     H, W = depth.shape
     f = p.focal_px(W)
     offset = p.offset_for(W)
