@@ -78,3 +78,15 @@ def _raise_core_error(kind: str) -> NoReturn:
 
 def _panic_for_test() -> NoReturn:
     """Test hook: panic inside the panic guard (raises LfcamError)."""
+
+def weighted_median_fill(
+    values: NDArray[np.float32],
+    weights: NDArray[np.float32],
+    guide: NDArray[np.float32],
+    todo: NDArray[np.uint8],
+    radius: int,
+    stride: int,
+    sigma_colour: float,
+    sigma_space: float,
+) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """Joint weighted median of ``values`` at the pixels where ``todo`` is non-zero."""

@@ -11,6 +11,7 @@
 
 pub mod crop;
 pub mod error;
+pub mod fill;
 pub mod image;
 pub mod parallel;
 pub mod rectify;
@@ -20,6 +21,7 @@ pub mod triangulate;
 
 pub use crate::crop::crop_lenslets;
 pub use crate::error::{Error, Result};
+pub use crate::fill::{FillParams, weighted_median_fill};
 pub use crate::image::ImageView;
 pub use crate::rectify::{Interp, ViewMaps, rectify};
 pub use crate::remap::remap_bilinear;

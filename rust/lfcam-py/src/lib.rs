@@ -8,6 +8,7 @@
 mod arrays;
 mod crop;
 mod errors;
+mod fill;
 mod rectify;
 mod remap;
 mod stats;
@@ -25,6 +26,8 @@ mod lfcam_ext {
     use crate::crop::crop_lenslets;
     #[pymodule_export]
     use crate::errors::{_panic_for_test, _raise_core_error};
+    #[pymodule_export]
+    use crate::fill::weighted_median_fill;
     #[pymodule_export]
     use crate::rectify::rectify;
     #[pymodule_export]
