@@ -128,32 +128,54 @@ def _flows_and_seen(
     params: FlowParams | None,
     fb_threshold: float,
     threads: int,
+    *,
+    margin: int | None = None,
+    backward: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`compute_flows`, and where at least one other view sees the reference
-    pixel (its forward flow lands inside that view's data, consistent or not)."""
+    pixel (its forward flow lands inside that view's data, consistent or not).
+
+    ``margin``: compute the flows only in the bounding box of the reference's data
+    grown by this many px (content moves at most about that far), not over the whole
+    rectified frame, most of which the reference does not see on a lenslet camera.
+    ``backward=False`` skips the backward flows and the consistency check.
+    """
     from .warp import remap_bilinear
 
     params = params or DEPTH_FLOW
     N, H, W = views.shape[:3]
     valid = np.isfinite(views).all(-1) if views.ndim == 4 else np.isfinite(views)
-    prepared = [prepare(v) for v in views]
-    grid = _grid(H, W)
     flows = np.full((N, H, W, 2), np.nan, np.float32)
     weights = np.zeros((N, H, W), np.float32)
     seen = np.zeros((N, H, W), bool)
+    ys, xs = np.nonzero(valid[reference])
+    if ys.size == 0:
+        return flows, weights, seen.any(axis=0)
+    if margin is None:
+        win = np.s_[0:H, 0:W]
+    else:
+        win = np.s_[
+            max(0, int(ys.min()) - margin) : min(H, int(ys.max()) + 1 + margin),
+            max(0, int(xs.min()) - margin) : min(W, int(xs.max()) + 1 + margin),
+        ]
+    sub = views[(slice(None), *win)]
+    sub_valid = valid[(slice(None), *win)]
+    prepared = [prepare(v) for v in sub]
+    grid = _grid(*sub.shape[1:3])
 
     def one(i: int) -> None:
         f = dis_flow(prepared[reference], prepared[i], params)
-        b = dis_flow(prepared[i], prepared[reference], params)
         target = grid + f
-        back = remap_bilinear(b, target)
-        fb = np.hypot(*np.moveaxis(f + back, -1, 0))
-        lands = remap_bilinear(valid[i].astype(np.float32), target)
-        inside = valid[reference] & (lands > 0.999)
-        ok = inside & (fb < fb_threshold)
-        flows[i] = np.where(ok[..., None], f, np.nan)
-        weights[i] = ok
-        seen[i] = inside
+        lands = remap_bilinear(sub_valid[i].astype(np.float32), target)
+        inside = sub_valid[reference] & (lands > 0.999)
+        ok = inside
+        if backward:
+            b = dis_flow(prepared[i], prepared[reference], params)
+            back = remap_bilinear(b, target)
+            ok = inside & (np.hypot(*np.moveaxis(f + back, -1, 0)) < fb_threshold)
+        flows[(i, *win)] = np.where(ok[..., None], f, np.nan)
+        weights[(i, *win)] = ok
+        seen[(i, *win)] = inside
 
     others = [i for i in range(N) if i != reference]
     with ThreadPoolExecutor(max_workers=max(1, threads)) as ex:
@@ -300,6 +322,7 @@ def depth_from_views(
     flow: FlowParams | None = None,
     threads: int = 2,
     fill: bool = True,
+    backward: bool = True,
     **triangulation: Any,
 ) -> DepthResult:
     """Parallax from bare rectified views: any camera array or light field.
@@ -321,6 +344,9 @@ def depth_from_views(
         Refill unconfident pixels (occlusion bands, failed flows) with
         :func:`fill_parallax` guided by the reference view (default). False gives
         the bare triangulation.
+    backward : bool
+        Also compute the flows back from each view for a forward-backward
+        consistency check (default; about twice the flow time).
     **triangulation
         Passed to :func:`lfcam.triangulate` (``cutoff``, ``sigma_floor``, ...).
 
@@ -352,7 +378,12 @@ def depth_from_views(
     if not (0 <= int(reference) < views.shape[0]):
         raise InputError(f"reference: {reference} is not a view index (0..{views.shape[0] - 1})")
     t0 = time.perf_counter()
-    flows, weights, seen = _flows_and_seen(views, int(reference), flow, 0.75, threads)
+    # Content moves by o_i s; |s| <= 2 covers a scene from half the board's
+    # distance to infinity on the reference camera, and light fields' |s| of a few px.
+    margin = int(np.ceil(2.0 * np.abs(offsets).max())) + 16
+    flows, weights, seen = _flows_and_seen(
+        views, int(reference), flow, 0.75, threads, margin=margin, backward=backward
+    )
     t1 = time.perf_counter()
     tri = triangulate(flows, offsets, int(reference), weights, **triangulation)
     t2 = time.perf_counter()
