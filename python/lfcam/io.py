@@ -23,6 +23,7 @@ from .errors import InputError
 __all__ = [
     "BAYER_PATTERNS",
     "demosaic",
+    "read_flo",
     "read_image",
     "read_pfm",
     "read_raw",
@@ -280,6 +281,39 @@ def read_pfm(path: str | os.PathLike[str]) -> np.ndarray:
     if abs(scale) != 1.0:
         out *= np.float32(abs(scale))
     return np.ascontiguousarray(out)
+
+
+def read_flo(path: str | os.PathLike[str]) -> np.ndarray:
+    """Read a Middlebury ``.flo`` optical-flow file.
+
+    Parameters
+    ----------
+    path : path-like
+        Tag ``202021.25`` (float32), width and height (int32), then ``(u, v)``
+        float32 pairs, row-major, top row first, little-endian.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(H, W, 2)`` float32, ``[..., 0]`` = u (x); NaN where the file marks the
+        flow unknown (``|value| > 1e9``).
+
+    Raises
+    ------
+    lfcam.InputError
+        If the file is missing, has the wrong tag, or its size does not match.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"{p}: no such file")
+    data = p.read_bytes()
+    if len(data) < 12 or np.frombuffer(data[:4], "<f4")[0] != 202021.25:
+        raise InputError(f"{p}: not a Middlebury .flo file (tag 202021.25 missing)")
+    w, h = (int(x) for x in np.frombuffer(data[4:12], "<i4"))
+    if w <= 0 or h <= 0 or len(data) != 12 + 8 * w * h:
+        raise InputError(f"{p}: .flo size {w} x {h} does not match its {len(data)} bytes")
+    flow = np.frombuffer(data[12:], "<f4").reshape(h, w, 2).astype(np.float32)
+    return np.where(np.abs(flow).max(-1, keepdims=True) < 1e9, flow, np.nan).astype(np.float32)
 
 
 def write_pfm(path: str | os.PathLike[str], array: np.ndarray, *, scale: float = -1.0) -> None:
