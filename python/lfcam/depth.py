@@ -377,6 +377,13 @@ def depth_from_views(
         raise InputError(
             f"offsets: expected finite (N, 2) = ({views.shape[0]}, 2), got {offsets.shape}"
         )
+    from .triangulate import MAX_VIEWS
+
+    if views.shape[0] > MAX_VIEWS:  # before minutes of flow, not after
+        raise InputError(
+            f"views: {views.shape[0]} views; at most {MAX_VIEWS} are supported"
+            " (choose a subset of the grid)"
+        )
     if not (0 <= int(reference) < views.shape[0]):
         raise InputError(f"reference: {reference} is not a view index (0..{views.shape[0] - 1})")
     t0 = time.perf_counter()
