@@ -20,9 +20,9 @@ from .errors import InputError
 from .flow import FlowParams, dis_flow, prepare
 
 __all__ = [
-    "AUTO_FILL_QUANTILE",
-    "AUTO_FILL_THRESHOLD",
     "DEPTH_FLOW",
+    "FILL_MAX_RESIDUAL",
+    "FILL_MIN_USED",
     "DepthResult",
     "compute_flows",
     "depth_from_parallax",
@@ -32,11 +32,15 @@ __all__ = [
     "guide_image",
 ]
 
-#: Confidence below which :func:`fill_parallax` refills a pixel, at most (HCI
-#: antinous 3 x 4: BadPix0.07 12.8% unfilled, 9.5% filled; see ``benchmarks/hci.py``).
-AUTO_FILL_THRESHOLD = 0.85
-#: ... and at most this percentile of the image's confidences.
-AUTO_FILL_QUANTILE = 25.0
+#: :func:`fill_parallax` refills a pixel whose triangulation residual exceeds this
+#: (px: the views disagree, as where flow mixes an occluder and what it hides) ...
+FILL_MAX_RESIDUAL = 0.2
+#: ... or which lost more than this share of the views that see it (occlusions,
+#: failed flows). Measured, ``benchmarks/hci.py`` and the simulator's cameras:
+#: HCI antinous 3 x 4 BadPix0.07 12.8% -> 9.3%, MSE x 100 26.9 -> 4.6; simulated
+#: layered scenes 3.9% -> 2.0% (3 x 4) and 6.2% -> 2.0% (3 x 3) of pixels off by > 5%.
+#: (Refilling by low confidence instead broke whole surfaces seen by few views.)
+FILL_MIN_USED = 0.75
 
 #: DIS parameters for depth: fine patches, dense stride, variational refinement, at
 #: full resolution (``benchmarks/flow_tuning.py``: Middlebury "other" mean end-point
@@ -152,7 +156,7 @@ def _flows_and_seen(
     seen = np.zeros((N, H, W), bool)
     ys, xs = np.nonzero(valid[reference])
     if ys.size == 0:
-        return flows, weights, seen.any(axis=0)
+        return flows, weights, seen.sum(axis=0).astype(np.uint8)
     if margin is None:
         win = np.s_[0:H, 0:W]
     else:
@@ -182,7 +186,7 @@ def _flows_and_seen(
     others = [i for i in range(N) if i != reference]
     with ThreadPoolExecutor(max_workers=max(1, threads)) as ex:
         list(ex.map(one, others))
-    return flows, weights, seen.any(axis=0)
+    return flows, weights, seen.sum(axis=0).astype(np.uint8)
 
 
 def guide_image(image: np.ndarray) -> np.ndarray:
@@ -211,24 +215,31 @@ def fill_parallax(
     confidence: np.ndarray,
     guide: np.ndarray,
     *,
+    residual: np.ndarray | None = None,
+    n_used: np.ndarray | None = None,
+    n_seen: np.ndarray | None = None,
     where: np.ndarray | None = None,
+    max_residual: float = FILL_MAX_RESIDUAL,
+    min_used: float = FILL_MIN_USED,
     threshold: float | None = None,
     radius: int = 20,
     stride: int = 2,
-    sigma_colour: float = 4.0,
+    sigma_colour: float = 3.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Replace unconfident parallax by a colour-guided, confidence-weighted median.
+    """Replace unreliable parallax by a colour-guided, confidence-weighted median.
 
     Flow is smooth across depth edges, so along every occlusion boundary the
-    triangulated parallax mixes the foreground's and the background's, with low
-    confidence. Each pixel whose confidence is below ``threshold`` (or whose
-    parallax is unknown) takes the weighted median of the confident parallaxes
-    within ``radius`` px, each weighted by its confidence, by its colour
-    similarity to the pixel in ``guide`` (Gaussian, ``sigma_colour`` in Lab
-    units) and by its distance (Gaussian, ``sigma = radius``): a median takes one
-    side's value, never a mixture, and the colour weight picks the side the pixel
-    belongs to. Pixels still unknown after that get a second, wider pass (twice
-    the radius and colour tolerance, weak weights on the first pass's results).
+    triangulated parallax mixes the foreground's and the background's: there the
+    views disagree (a large residual) or many of them were dropped. Each such
+    pixel (and each unknown one) takes the weighted median of the reliable
+    parallaxes within ``radius`` px, each weighted by its confidence, by its colour
+    similarity to the pixel in ``guide`` (Gaussian, ``sigma_colour`` in Lab units)
+    and by its distance (Gaussian, ``sigma = radius``): a median takes one side's
+    value, never a mixture, and the colour weight picks the side the pixel belongs
+    to. Unknown pixels still unknown after that get a second, wider pass (twice the
+    radius and colour tolerance, weak weights on the first pass's results); an
+    unreliable pixel with nothing reliable around keeps its value. Low confidence alone (few views see a
+    pixel, as near the edge of a lenslet's image circle) is not a reason to refill.
     Runs in the Rust core (``lfcam._lfcam.weighted_median_fill``).
 
     Parameters
@@ -237,15 +248,18 @@ def fill_parallax(
         From :func:`lfcam.triangulate`.
     guide : (H, W, C) float array
         From :func:`guide_image` of the reference view.
+    residual, n_used : (H, W) arrays, optional
+        From :func:`lfcam.triangulate`: pixels with ``residual > max_residual`` or
+        ``n_used < min_used * n_seen`` are refilled.
+    n_seen : (H, W) int array, optional
+        Views whose flow lands inside their data at each pixel, consistent or not.
     where : (H, W) bool array, optional
         Pixels that may be filled (default: all): where the reference and at least
         one other view see, so that nothing is extrapolated beyond the data.
+    max_residual, min_used : float
+        See :data:`FILL_MAX_RESIDUAL`, :data:`FILL_MIN_USED`.
     threshold : float, optional
-        Confidence below which a pixel is refilled. Default: the smaller of
-        :data:`AUTO_FILL_THRESHOLD` and the :data:`AUTO_FILL_QUANTILE` th
-        percentile of the confidences, so that at most about a quarter of the
-        pixels are refilled from the others whatever the camera's typical
-        confidence (the median needs confident neighbours in the majority).
+        Also refill pixels whose confidence is below this.
     radius, stride : int
         Window radius and sampling step, px.
     sigma_colour : float
@@ -256,8 +270,8 @@ def fill_parallax(
     parallax : (H, W) float32
         Filled parallax (NaN where nothing could be filled or outside ``where``).
     confidence : (H, W) float32
-        The input confidence; at filled pixels ``threshold`` x the share of the
-        window's weight that supported the median (always below ``threshold``).
+        The input confidence; at filled pixels half the share of the window's
+        weight that supported the median (so at most 0.5).
     filled : (H, W) bool
         Where the parallax was replaced.
     """
@@ -276,17 +290,24 @@ def fill_parallax(
     allowed = np.ones(s.shape, bool) if where is None else np.asarray(where, bool)
     if g.shape[:2] != s.shape or allowed.shape != s.shape:
         raise InputError(f"guide, where: expected shape {s.shape}, got {g.shape} / {allowed.shape}")
-    if threshold is None:
-        known = np.isfinite(s) & allowed
-        q = float(np.percentile(c[known], AUTO_FILL_QUANTILE)) if known.any() else 0.0
-        threshold = min(AUTO_FILL_THRESHOLD, q)
-    unsure = ~(c >= threshold) | ~np.isfinite(s)
+    unsure = ~np.isfinite(s)
+    for name, arr in (("residual", residual), ("n_used", n_used), ("n_seen", n_seen)):
+        if arr is not None and np.shape(arr) != s.shape:
+            raise InputError(f"{name}: expected shape {s.shape}, got {np.shape(arr)}")
+    if residual is not None:
+        unsure |= np.asarray(residual, np.float32) > max_residual
+    if n_used is not None and n_seen is not None:
+        unsure |= np.asarray(n_used, np.float32) < min_used * np.asarray(n_seen, np.float32)
+    if threshold is not None:
+        unsure |= c < threshold
     weights = np.where(unsure, 0.0, c).astype(np.float32)
     todo = (unsure & allowed).astype(np.uint8)
     out, support = _lfcam.weighted_median_fill(
         s, weights, g, todo, int(radius), int(stride), float(sigma_colour), float(radius)
     )
-    missing = (~np.isfinite(out) & allowed).astype(np.uint8)
+    # A second, wider pass only for unknown pixels: an unreliable value with nothing
+    # reliable nearby is a better guess than values from further away (measured).
+    missing = (~np.isfinite(out) & ~np.isfinite(s) & allowed).astype(np.uint8)
     if missing.any():
         w2 = np.where(np.isfinite(out), np.maximum(weights, 0.1), 0.0).astype(np.float32)
         out2, support2 = _lfcam.weighted_median_fill(
@@ -301,10 +322,10 @@ def fill_parallax(
         )
         out, support = out2, np.where(missing > 0, 0.5 * support2, support)
     filled = (todo > 0) & np.isfinite(out)
-    # Where nothing could be filled, the unconfident value is still the best guess.
+    # Where nothing could be filled, the unreliable value is still the best guess.
     out = np.where(filled | (todo == 0), out, s)
     out = np.where(allowed, out, np.nan).astype(np.float32)
-    conf = np.where(filled, threshold * np.clip(support, 0.0, 1.0), c)
+    conf = np.where(filled, 0.5 * np.clip(support, 0.0, 1.0), c)
     conf = np.where(np.isfinite(out), conf, 0.0).astype(np.float32)
     return out, conf, filled
 
@@ -400,7 +421,13 @@ def depth_from_views(
     parallax, confidence, filled = tri.parallax, tri.confidence, None
     if fill:
         parallax, confidence, filled = fill_parallax(
-            parallax, confidence, guide_image(views[int(reference)]), where=seen
+            parallax,
+            confidence,
+            guide_image(views[int(reference)]),
+            residual=tri.residual,
+            n_used=tri.n_used,
+            n_seen=seen,
+            where=seen > 0,
         )
         timings["fill"] = time.perf_counter() - t2
     return DepthResult(
