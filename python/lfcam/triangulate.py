@@ -17,7 +17,7 @@ from lfcam.errors import InputError
 __all__ = ["CONFIDENCE_INFO", "CONFIDENCE_TAU", "MAX_VIEWS", "TriangulationResult", "triangulate"]
 
 #: Most views (the reference included) :func:`triangulate` accepts.
-MAX_VIEWS = 64
+MAX_VIEWS = 128
 #: Share of the parallax information at which the confidence's first factor is 1 - 1/e.
 CONFIDENCE_INFO = 0.25
 #: Residual (px) at which the confidence's second factor is 1/e.
@@ -122,7 +122,7 @@ def triangulate(
         view ``i``, px; NaN or infinity: no measurement. The reference's own entry is
         not read. Other dtypes are refused (a float64 stack of 12 full-size flows is
         200 MB: convert it once yourself with ``.astype(numpy.float32)``); a
-        non-C-contiguous array is copied once. ``2 <= N <= 64``.
+        non-C-contiguous array is copied once. ``2 <= N <= 128``.
     offsets : array_like of float, shape (N, 2)
         ``o_i``, px per unit ``s`` (rectified frame, ``x`` first), finite;
         ``offsets[reference]`` must be ``(0, 0)``. Views with a zero offset are not used.
@@ -153,7 +153,7 @@ def triangulate(
     ------
     InputError
         If an argument has the wrong type, dtype or shape, if ``N`` is outside
-        ``2..64``, if ``offsets`` has a non-finite value, a non-zero reference offset
+        ``2..128``, if ``offsets`` has a non-finite value, a non-zero reference offset
         or no non-zero offset at all, if ``reference`` is not a view index, if a
         parameter is out of range, or if a weight of a non-reference view is negative
         or infinite (the message names the view, e.g. ``weights[3]: ...``, and the

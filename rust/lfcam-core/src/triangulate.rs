@@ -61,7 +61,7 @@ use crate::parallel;
 
 /// Most views (the reference included) one call accepts: it bounds the scratch memory
 /// (a few kB per view per task) and keeps `n_used` in a `u8`.
-pub const MAX_VIEWS: usize = 64;
+pub const MAX_VIEWS: usize = 128;
 
 /// `sigma = MAD_TO_SIGMA * median absolute residual`: the consistency factor of the
 /// median absolute deviation for Gaussian noise.
@@ -81,7 +81,7 @@ pub const CONFIDENCE_TAU: f32 = 0.5;
 pub const MAX_OFFSET: f64 = 1e18;
 
 /// Pixels per block: the width of the structure-of-arrays rows. 64 float32 are a few
-/// vector registers' worth, and 64 views' worth of scratch rows stay within L2.
+/// vector registers' worth, and 128 views' worth of scratch rows stay within L2.
 pub const LANES: usize = 64;
 
 /// One scratch row: a value per pixel of the block.
@@ -935,7 +935,7 @@ impl Setup<'_> {
             *conf = c;
             *res = r;
             *perp = q;
-            // At most MAX_VIEWS - 1 = 63 views: exact in f32 and in u8.
+            // At most MAX_VIEWS - 1 = 127 views: exact in f32 and in u8.
             *used = cnt as u8;
         }
     }
