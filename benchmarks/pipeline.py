@@ -12,7 +12,10 @@ from __future__ import annotations
 
 import argparse
 import os
+import resource
 import statistics
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -47,6 +50,7 @@ def main() -> None:
                 res = process_capture(path, cal)
                 rows["process (1 capture)"].append(time.perf_counter() - t0)
                 extra = {s: f"{v:.2f}" for s, v in res.timings.items()}
+            peak_mb = _process_peak_rss(path, sim.calibration_dir, cal)
     targets = {
         "simulate": "< 60 s (small)",
         "calibrate": "< 60 s (small)",
@@ -60,6 +64,21 @@ def main() -> None:
     for stage, times in rows.items():
         print(f"{stage:22} {statistics.median(times):9.2f} {len(times):5d}  {targets[stage]}")
     print("last capture's stages (s): " + ", ".join(f"{k} {v}" for k, v in extra.items()))
+    print(f"peak memory of a process run on its own: {peak_mb:.0f} MB (target <= 2048 MB)")
+
+
+def _process_peak_rss(capture: Path, workdir: Path, cal: lfcam.Calibration) -> float:
+    """Peak resident memory (MB) of one capture processed in a fresh interpreter."""
+    calf = workdir / "bench.lfcal"
+    cal.save(calf)
+    code = (
+        "import lfcam; from lfcam.pipeline import process_capture;"
+        f"process_capture({str(capture)!r}, lfcam.Calibration.load({str(calf)!r}))"
+    )
+    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    subprocess.run([sys.executable, "-c", code], check=True)
+    after = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    return max(before, after) / 1024.0  # Linux: kB
 
 
 if __name__ == "__main__":
