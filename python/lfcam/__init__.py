@@ -17,6 +17,7 @@ from lfcam.pattern import make_pattern
 from lfcam.pipeline import CaptureResult, process_capture, rectify
 from lfcam.simulator import SimConfig, SimulationResult, simulate
 from lfcam.stats import nan_median
+from lfcam.superres import all_in_focus, refocus, super_resolve
 from lfcam.triangulate import TriangulationResult, triangulate
 from lfcam.warp import remap_bilinear
 
@@ -32,6 +33,7 @@ __all__ = [
     "SimulationResult",
     "TriangulationResult",
     "__version__",
+    "all_in_focus",
     "calibrate",
     "crop_lenslets",
     "depth_from_views",
@@ -43,8 +45,10 @@ __all__ = [
     "read_image",
     "read_raw",
     "rectify",
+    "refocus",
     "remap_bilinear",
     "set_num_threads",
     "simulate",
+    "super_resolve",
     "triangulate",
 ]
