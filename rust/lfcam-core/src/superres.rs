@@ -25,6 +25,8 @@ use crate::parallel;
 pub const MAX_FACTOR: f32 = 16.0;
 /// Largest number of interleaved channels.
 pub const MAX_CHANNELS: usize = 4;
+/// Largest splat kernel radius, fine px.
+pub const MAX_RADIUS: usize = 16;
 
 fn check_len(arg: &str, got: usize, want: usize, what: &str) -> Result<()> {
     if got == want {
@@ -387,9 +389,14 @@ pub fn place_samples(
                 if !s.is_finite() {
                     break;
                 }
-                px = qx - ox * s;
-                py = qy - oy * s;
+                let (nx, ny) = (qx - ox * s, qy - oy * s);
+                let moved = (nx - px).abs() + (ny - py).abs();
+                px = nx;
+                py = ny;
                 s = sample_nan_aware(parallax, h, w, px, py);
+                if moved < 1e-4 {
+                    break; // converged: p no longer moves
+                }
             }
             let ok = s.is_finite() && {
                 let (ex, ey) = (px + ox * s - qx, py + oy * s - qy);
@@ -543,23 +550,30 @@ fn splat_band(
         if v.iter().any(|c| !c.is_finite()) {
             continue;
         }
+        // The Gaussian is separable: (2r + 1) exponentials per axis, not per tap.
+        let mut gx = [1f32; 2 * MAX_RADIUS + 1];
+        if r > 0 {
+            for (t, g) in gx.iter_mut().enumerate().take(2 * r as usize + 1) {
+                let dx = (xc - r + t as i64) as f32 - fx;
+                *g = (-dx * dx * inv2s2).exp();
+            }
+        }
         for yy in (yc - r)..=(yc + r) {
             if yy < row0 as i64 || yy >= (row0 + nrows) as i64 || yy >= fine_h as i64 {
                 continue;
             }
             let dy = yy as f32 - fy;
+            let gy = if r == 0 {
+                1.0
+            } else {
+                (-dy * dy * inv2s2).exp()
+            };
             let ly = (yy as usize - row0) * fine_w;
-            for xx in (xc - r)..=(xc + r) {
+            for (t, xx) in ((xc - r)..=(xc + r)).enumerate() {
                 if xx < 0 || xx >= fine_w as i64 {
                     continue;
                 }
-                let g = if r == 0 {
-                    1.0
-                } else {
-                    let dx = xx as f32 - fx;
-                    (-(dx * dx + dy * dy) * inv2s2).exp()
-                };
-                let wt = wk * g;
+                let wt = wk * gy * gx[t];
                 let p = ly + xx as usize;
                 wsum[p] += wt;
                 let s = &mut sum[p * channels..(p + 1) * channels];
@@ -571,11 +585,13 @@ fn splat_band(
     }
 }
 
-/// Bilinear sample (clamped to the image) of a `(h, w, c)` image at fine `(x, y)`,
-/// channel by channel into `out`; false if a corner is NaN.
+/// The fused estimate `sum / wsum` at fine `(x, y)`: bilinear (clamped to the grid)
+/// over the corners that have weight, channel by channel into `out`; false if none.
+#[allow(clippy::too_many_arguments)]
 #[inline]
-fn bilinear_clamped(
-    img: &[f32],
+fn estimate_at(
+    sum: &[f32],
+    wsum: &[f32],
     h: usize,
     w: usize,
     c: usize,
@@ -590,18 +606,25 @@ fn bilinear_clamped(
     let x1 = (x0 + 1).min(w - 1);
     let y1 = (y0 + 1).min(h - 1);
     let (tx, ty) = (xc - x0 as f32, yc - y0 as f32);
-    for (ch, o) in out.iter_mut().enumerate().take(c) {
-        let a = img[(y0 * w + x0) * c + ch];
-        let b = img[(y0 * w + x1) * c + ch];
-        let d = img[(y1 * w + x0) * c + ch];
-        let e = img[(y1 * w + x1) * c + ch];
-        let top = a + tx * (b - a);
-        let bot = d + tx * (e - d);
-        *o = top + ty * (bot - top);
-        if !o.is_finite() {
-            return false;
+    let mut total = 0.0f32;
+    out.iter_mut().take(c).for_each(|o| *o = 0.0);
+    for (yy, wy) in [(y0, 1.0 - ty), (y1, ty)] {
+        for (xx, wx) in [(x0, 1.0 - tx), (x1, tx)] {
+            let p = yy * w + xx;
+            let ws = wsum[p];
+            let b = wx * wy;
+            if ws > 1e-6 && b > 0.0 {
+                total += b;
+                for (o, &v) in out.iter_mut().zip(&sum[p * c..(p + 1) * c]) {
+                    *o += b * v / ws;
+                }
+            }
         }
     }
+    if total < 0.25 {
+        return false;
+    }
+    out.iter_mut().take(c).for_each(|o| *o /= total);
     true
 }
 
@@ -679,7 +702,7 @@ pub fn shift_and_add(
             format!("must be in (0, {MAX_FACTOR}], got {}", params.factor),
         ));
     }
-    if !(params.sigma >= 0.0 && params.sigma.is_finite()) || params.radius > 16 {
+    if !(params.sigma >= 0.0 && params.sigma.is_finite()) || params.radius > MAX_RADIUS {
         return Err(Error::invalid_argument(
             "sigma",
             format!(
@@ -736,15 +759,9 @@ pub fn shift_and_add(
     };
     accumulate(&wk, sum, wsum)?;
     for _ in 0..params.iterations {
-        // The estimate, in place of the sums (rebuilt by the next accumulation).
-        let est: Vec<f32> = sum
-            .chunks_exact(channels)
-            .zip(wsum.iter())
-            .flat_map(|(s, &w)| {
-                s.iter()
-                    .map(move |&v| if w > 1e-6 { v / w } else { f32::NAN })
-            })
-            .collect();
+        // The estimate sum / wsum, read on the fly (sum and wsum are rebuilt by the
+        // next accumulation).
+        let (est_sum, est_w): (&[f32], &[f32]) = (sum, wsum);
         let base = weights;
         let reweight = |first: usize, chunk: &mut [f32]| -> Result<()> {
             let mut buf = [0f32; MAX_CHANNELS];
@@ -759,7 +776,7 @@ pub fn shift_and_add(
                     *w = 0.0;
                     continue;
                 };
-                if !bilinear_clamped(&est, fine_h, fine_w, channels, fx, fy, &mut buf) {
+                if !estimate_at(est_sum, est_w, fine_h, fine_w, channels, fx, fy, &mut buf) {
                     *w = w0; // no estimate there yet: keep the sample
                     continue;
                 }
@@ -814,7 +831,8 @@ fn gaussian_taps(sigma: f32) -> Vec<f32> {
     if !(sigma > 0.0) {
         return vec![1.0];
     }
-    let r = (3.0 * sigma).ceil() as i64;
+    // Truncated at 2.5 sigma (98.8% of the mass, renormalised).
+    let r = (2.5 * sigma).ceil() as i64;
     let mut k: Vec<f32> = (-r..=r)
         .map(|d| (-(d * d) as f32 / (2.0 * sigma * sigma)).exp())
         .collect();
