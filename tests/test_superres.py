@@ -27,8 +27,8 @@ SCENES = ("planes", "spheres", "layered", "board")
 
 
 def naive_shift_and_add(pos, val, shape, factor, weights=None, sigma=0.0, radius=0):
-    """The same fusion with numpy ``np.add.at``: nearest fine pixel (round half away
-    from zero) and, for ``sigma > 0``, Gaussian taps within ``radius`` of it."""
+    """The same fusion with numpy ``np.add.at``: nearest fine pixel (``floor(X + 0.5)``)
+    and, for ``sigma > 0``, Gaussian taps within ``radius`` of it."""
     pos = pos.reshape(-1, 2).astype(np.float64)
     val = val.reshape(len(pos), -1).astype(np.float64)
     w = np.ones(len(pos)) if weights is None else weights.reshape(-1).astype(np.float64)
@@ -36,8 +36,8 @@ def naive_shift_and_add(pos, val, shape, factor, weights=None, sigma=0.0, radius
     fy = (pos[:, 1] + 0.5) * factor - 0.5
     ok = np.isfinite(fx) & np.isfinite(fy) & (w > 0) & np.isfinite(val).all(1)
     fx, fy, val, w = fx[ok], fy[ok], val[ok], w[ok]
-    xc = np.sign(fx) * np.floor(np.abs(fx) + 0.5)
-    yc = np.sign(fy) * np.floor(np.abs(fy) + 0.5)
+    xc = np.floor(fx + 0.5)
+    yc = np.floor(fy + 0.5)
     H, W = shape
     sums = np.zeros((H, W, val.shape[1]))
     wsum = np.zeros((H, W))
@@ -374,9 +374,12 @@ def test_refocus_sharp_at_focus_plane_blurred_away(reference_camera) -> None:
     assert energies[3] < 0.8, energies
     # Far from the focus plane (0.8 m: |ds| = 0.45) the board is a blur.
     assert _gradient_energy(lfcam.refocus(raw, cal, 0.8), region) / e_ref < 0.6
-    # A smaller synthetic aperture blurs less.
-    half = lfcam.refocus(raw, cal, parallax=s_b + 0.08, aperture=0.5)
-    assert _gradient_energy(half, region) / e_ref > energies[3]
+    # A smaller synthetic aperture (the 4 nearest views and the reference) blurs less
+    # away from its focus, relative to its own focus (fewer samples per pixel make it
+    # softer everywhere; measured 0.83 against 0.71).
+    e_in = _gradient_energy(lfcam.refocus(raw, cal, parallax=s_b, aperture=0.5), region)
+    e_out = _gradient_energy(lfcam.refocus(raw, cal, parallax=s_b + 0.08, aperture=0.5), region)
+    assert e_out / e_in > energies[3] + 0.05, (e_out / e_in, energies[3])
     # From rectified views: the same picture, a little softer.
     from_views = lfcam.refocus(views, cal, z_board)
     assert 0.85 <= _gradient_energy(from_views, region) / e_ref <= 1.05

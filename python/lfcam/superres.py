@@ -241,7 +241,7 @@ def shift_and_add(
 
     Sample ``k`` at rectified ``(x, y)`` lands at fine ``((x + 0.5) r - 0.5,
     (y + 0.5) r - 0.5)``; with ``sigma = 0`` it adds to the nearest fine pixel
-    (``numpy.round``-like but half away from zero), else to the fine pixels within
+    (``floor(X + 0.5)``), else to the fine pixels within
     ``radius`` of that one with Gaussian weights. ``iterations`` robust passes reweight
     each sample by ``min(1, huber / e)`` (``e``: its mean absolute residual against the
     current estimate; dropped above ``reject``).
@@ -546,6 +546,8 @@ def refocus(
     aperture : float
         Synthetic aperture as a fraction of the lenslet array's extent: views with
         ``|o_i| <= aperture * max |o_j|`` are used (0: the reference view alone).
+        Fewer views also mean fewer samples per pixel: small apertures come out
+        softer, even at the focus plane.
     sigma : float
         Gaussian splat kernel, px (0: nearest pixel).
 

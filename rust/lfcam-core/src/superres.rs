@@ -28,6 +28,13 @@ pub const MAX_CHANNELS: usize = 4;
 /// Largest splat kernel radius, fine px.
 pub const MAX_RADIUS: usize = 16;
 
+/// `v > 0` (false for NaN): written as a function so that `!positive(v)` reads as
+/// "not a usable positive number".
+#[inline(always)]
+fn positive(v: f32) -> bool {
+    v > 0.0
+}
+
 fn check_len(arg: &str, got: usize, want: usize, what: &str) -> Result<()> {
     if got == want {
         Ok(())
@@ -80,7 +87,7 @@ fn invert_bilinear(
         let dxb = (1.0 - a) * (p01[0] - p00[0]) + a * (p11[0] - p10[0]);
         let dyb = (1.0 - a) * (p01[1] - p00[1]) + a * (p11[1] - p10[1]);
         let det = dxa * dyb - dxb * dya;
-        if !(det.abs() > 1e-12) {
+        if !positive(det.abs() - 1e-12) {
             return None;
         }
         let da = (fx * dyb - fy * dxb) / det;
@@ -442,14 +449,33 @@ fn fine_pos(positions: &[f32], k: usize, factor: f32) -> Option<(f32, f32)> {
     (fx.is_finite() && fy.is_finite()).then_some((fx, fy))
 }
 
+/// The nearest fine pixel index, `floor(v + 0.5)` (round half up), without a libm
+/// call: `v` is finite here, and positions beyond +-2^30 px are off any grid anyway.
+#[inline(always)]
+fn nearest(v: f32) -> i64 {
+    const SHIFT: f64 = (1u64 << 30) as f64;
+    ((f64::from(v) + 0.5 + SHIFT) as i64) - (1i64 << 30)
+}
+
+/// Samples per binning chunk: fixed (not per thread), so that the order in which a
+/// pixel's samples are summed, hence the result, does not depend on the thread count.
+const BIN_CHUNK: usize = 1 << 16;
+
+/// One chunk's samples sorted into bands (a counting sort): band `b`'s samples are
+/// `items[starts[b]..starts[b + 1]]`, in increasing order.
+struct ChunkBins {
+    starts: Vec<u32>,
+    items: Vec<u32>,
+}
+
 struct Bins {
     band_rows: usize,
-    starts: Vec<usize>,
-    items: Vec<u32>,
+    chunks: Vec<ChunkBins>,
 }
 
 /// Samples sorted into bands of output rows (a sample whose kernel touches two bands
 /// is in both), so that bands can be accumulated in parallel without sharing output.
+/// Chunks of [`BIN_CHUNK`] samples are sorted in parallel.
 fn bin_samples(
     positions: &[f32],
     weights: Option<&[f32]>,
@@ -459,51 +485,59 @@ fn bin_samples(
     fine_h: usize,
     band_rows: usize,
 ) -> Result<Bins> {
-    let n_bands = fine_h.div_ceil(band_rows);
-    let r = radius as i64;
-    let span = |k: usize| -> Option<(usize, usize)> {
-        if weights.is_some_and(|wt| !(wt[k] > 0.0)) {
-            return None;
-        }
-        let (_, fy) = fine_pos(positions, k, factor)?;
-        let yc = fy.round() as i64;
-        let lo = (yc - r).max(0);
-        let hi = (yc + r).min(fine_h as i64 - 1);
-        (lo <= hi).then(|| (lo as usize / band_rows, hi as usize / band_rows))
-    };
-    let mut counts = vec![0usize; n_bands + 1];
-    for k in 0..m {
-        if let Some((b0, b1)) = span(k) {
-            for b in b0..=b1 {
-                counts[b + 1] += 1;
-            }
-        }
-    }
-    for b in 0..n_bands {
-        counts[b + 1] += counts[b];
-    }
-    let total = counts[n_bands];
     if m > u32::MAX as usize {
         return Err(Error::invalid_argument(
             "positions",
             format!("{m} samples: at most {} are supported", u32::MAX),
         ));
     }
-    let mut items = vec![0u32; total];
-    let mut fill = counts.clone();
-    for k in 0..m {
-        if let Some((b0, b1)) = span(k) {
-            for f in fill.iter_mut().take(b1 + 1).skip(b0) {
-                items[*f] = k as u32;
-                *f += 1;
+    let n_bands = fine_h.div_ceil(band_rows);
+    let r = radius as i64;
+    let span = |k: usize| -> Option<(usize, usize)> {
+        if weights.is_some_and(|wt| !positive(wt[k])) {
+            return None;
+        }
+        let (_, fy) = fine_pos(positions, k, factor)?;
+        let yc = nearest(fy);
+        let lo = (yc - r).max(0);
+        let hi = (yc + r).min(fine_h as i64 - 1);
+        (lo <= hi).then(|| (lo as usize / band_rows, hi as usize / band_rows))
+    };
+    let one = |c: usize| -> ChunkBins {
+        let k0 = c * BIN_CHUNK;
+        let k1 = (k0 + BIN_CHUNK).min(m);
+        let mut counts = vec![0u32; n_bands + 1];
+        let spans: Vec<Option<(usize, usize)>> = (k0..k1).map(span).collect();
+        for (b0, b1) in spans.iter().flatten() {
+            for b in *b0..=*b1 {
+                counts[b + 1] += 1;
             }
         }
-    }
-    Ok(Bins {
-        band_rows,
-        starts: counts,
-        items,
-    })
+        for b in 0..n_bands {
+            counts[b + 1] += counts[b];
+        }
+        let mut items = vec![0u32; counts[n_bands] as usize];
+        let mut fill = counts.clone();
+        for (j, sp) in spans.iter().enumerate() {
+            if let Some((b0, b1)) = *sp {
+                for f in fill.iter_mut().take(b1 + 1).skip(b0) {
+                    items[*f as usize] = (k0 + j) as u32;
+                    *f += 1;
+                }
+            }
+        }
+        ChunkBins {
+            starts: counts,
+            items,
+        }
+    };
+    let n_chunks = m.div_ceil(BIN_CHUNK);
+    let chunks = if n_chunks <= 1 {
+        (0..n_chunks).map(one).collect()
+    } else {
+        parallel::install(|| (0..n_chunks).into_par_iter().map(one).collect())?
+    };
+    Ok(Bins { band_rows, chunks })
 }
 
 /// Accumulates the samples of one band into its rows.
@@ -535,17 +569,21 @@ fn splat_band(
     } else {
         0.0
     };
-    for &k in &bins.items[bins.starts[band]..bins.starts[band + 1]] {
+    let band_items = bins.chunks.iter().flat_map(|c| {
+        let (a, b) = (c.starts[band] as usize, c.starts[band + 1] as usize);
+        &c.items[a..b]
+    });
+    for &k in band_items {
         let k = k as usize;
         let wk = weights[k];
-        if !(wk > 0.0) {
+        if !positive(wk) {
             continue;
         }
         let Some((fx, fy)) = fine_pos(positions, k, params.factor) else {
             continue;
         };
-        let xc = fx.round() as i64;
-        let yc = fy.round() as i64;
+        let xc = nearest(fx);
+        let yc = nearest(fy);
         let v = &values[k * channels..(k + 1) * channels];
         if v.iter().any(|c| !c.is_finite()) {
             continue;
@@ -633,8 +671,7 @@ fn estimate_at(
 /// Sample `k` (value `values[k*C..(k+1)*C]`, weight `weights[k]`, default 1; NaN or
 /// non-positive weights and NaN positions or values are skipped) at rectified position
 /// `positions[k] = (x, y)` lands at fine `(X, Y) = ((x + 0.5) r - 0.5, (y + 0.5) r -
-/// 0.5)`. With `sigma = 0` it adds to the nearest fine pixel (round half away from
-/// zero); else to the pixels within `radius` of it, with Gaussian weights
+/// 0.5)`. With `sigma = 0` it adds to the nearest fine pixel (round half up); else to the pixels within `radius` of it, with Gaussian weights
 /// `exp(-|(U, V) - (X, Y)|^2 / (2 sigma^2))`. Writes `sum` `(fine_h, fine_w, C)`, the
 /// weighted sums `sum_k w_k g_k v_k`, and `wsum` `(fine_h, fine_w)`, `sum_k w_k g_k`.
 ///
@@ -665,7 +702,7 @@ pub fn shift_and_add(
             format!("must have 1 to {MAX_CHANNELS} channels, got {channels}"),
         ));
     }
-    if positions.len() % 2 != 0 {
+    if !positions.len().is_multiple_of(2) {
         return Err(Error::invalid_argument(
             "positions",
             "must be (M, 2) positions (x, y)",
@@ -768,7 +805,7 @@ pub fn shift_and_add(
             for (j, w) in chunk.iter_mut().enumerate() {
                 let k = first + j;
                 let w0 = base.map_or(1.0, |b| b[k]);
-                if !(w0 > 0.0) {
+                if !positive(w0) {
                     *w = 0.0;
                     continue;
                 }
@@ -787,7 +824,8 @@ pub fn shift_and_add(
                     .map(|(a, b)| (a - b).abs())
                     .sum::<f32>()
                     / channels as f32;
-                *w = if !(e <= params.reject) {
+                let keep = e <= params.reject; // false for NaN
+                *w = if !keep {
                     0.0
                 } else if e > params.huber {
                     w0 * params.huber / e
@@ -828,7 +866,7 @@ pub struct BtvParams {
 }
 
 fn gaussian_taps(sigma: f32) -> Vec<f32> {
-    if !(sigma > 0.0) {
+    if !positive(sigma) {
         return vec![1.0];
     }
     // Truncated at 2.5 sigma (98.8% of the mass, renormalised).
