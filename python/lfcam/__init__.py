@@ -18,6 +18,7 @@ from lfcam.pattern import make_pattern
 from lfcam.pipeline import CaptureResult, process_capture, rectify
 from lfcam.simulator import SimConfig, SimulationResult, simulate
 from lfcam.stats import nan_median
+from lfcam.superres import all_in_focus, refocus, super_resolve
 from lfcam.triangulate import TriangulationResult, triangulate
 from lfcam.warp import remap_bilinear
 
@@ -34,6 +35,7 @@ __all__ = [
     "SimulationResult",
     "TriangulationResult",
     "__version__",
+    "all_in_focus",
     "calibrate",
     "crop_lenslets",
     "depth_from_views",
@@ -46,9 +48,11 @@ __all__ = [
     "read_pfm",
     "read_raw",
     "rectify",
+    "refocus",
     "remap_bilinear",
     "set_num_threads",
     "simulate",
+    "super_resolve",
     "triangulate",
     "write_pfm",
 ]

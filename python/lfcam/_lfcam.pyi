@@ -9,12 +9,16 @@ __all__ = [
     "__version__",
     "_panic_for_test",
     "_raise_core_error",
+    "btv_deblur",
     "crop_lenslets",
     "get_num_threads",
+    "invert_maps",
     "nan_median",
+    "place_samples",
     "rectify",
     "remap_bilinear",
     "set_num_threads",
+    "shift_and_add",
     "triangulate",
     "weighted_median_fill",
 ]
@@ -67,6 +71,54 @@ def triangulate(
     NDArray[np.uint8],
 ]:
     """Robust parallax of (N, H, W, 2) float32 flows: (s, confidence, residual, perp, n_used)."""
+
+def invert_maps(
+    warps: NDArray[np.float32],
+    masks: NDArray[np.uint8] | None,
+    crops: NDArray[np.int64],
+    raw_height: int,
+    raw_width: int,
+) -> tuple[NDArray[np.float32], NDArray[np.int32]]:
+    """Inverse warp maps: (H_raw, W_raw, 2) rectified positions and (H_raw, W_raw) views."""
+
+def place_samples(
+    inv: NDArray[np.float32],
+    view: NDArray[np.int32],
+    offsets: NDArray[np.float64],
+    parallax: NDArray[np.float32],
+    iterations: int,
+    tolerance: float,
+) -> NDArray[np.float32]:
+    """Reference-frame positions p with p + o_i s(p) = q of samples at q (NaN: dropped)."""
+
+def shift_and_add(
+    positions: NDArray[np.float32],
+    values: NDArray[np.float32],
+    weights: NDArray[np.float32] | None,
+    fine_height: int,
+    fine_width: int,
+    factor: float,
+    sigma: float,
+    radius: int,
+    iterations: int,
+    huber: float,
+    reject: float,
+) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """Robust shift-and-add onto a fine grid: (sum (H, W, C), wsum (H, W))."""
+
+def btv_deblur(
+    z: NDArray[np.float32],
+    a: NDArray[np.float32],
+    x0: NDArray[np.float32] | None,
+    psf_sigma: float,
+    lam: float,
+    alpha: float,
+    window: int,
+    iterations: int,
+    step: float,
+    eps: float,
+) -> NDArray[np.float32]:
+    """Bilateral-TV deblurring of a (H, W, C) shift-and-add image with data weights a."""
 
 def set_num_threads(n: int) -> None:
     """Set the number of threads lfcam's kernels run on (1 to 1024)."""

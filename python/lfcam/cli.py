@@ -286,6 +286,18 @@ def _add_process(sub: Any) -> None:
     p.add_argument("-o", "--output", type=Path, required=True, help="output folder")
     p.add_argument("--jobs", type=int, default=1, help="captures processed in parallel")
     p.add_argument("--save-views", action="store_true", help="also write the rectified views")
+    p.add_argument(
+        "--superres",
+        type=int,
+        metavar="F",
+        help="also write superres.png: the reference view super-resolved F times (1-4)",
+    )
+    p.add_argument(
+        "--refocus",
+        type=_floats,
+        metavar="Z1,Z2",
+        help="also write refocus_<Z>m.png, refocused at these distances in metres",
+    )
     p.add_argument("--overwrite", action="store_true", help="redo complete outputs")
     p.set_defaults(func=_cmd_process)
 
@@ -332,7 +344,14 @@ def _process_one(
 
     try:
         cal = _WORKER["cal"]
-        res = process_capture(src, cal, threads=_WORKER["threads"])
+        products = extra.get("products", {})
+        res = process_capture(
+            src,
+            cal,
+            threads=_WORKER["threads"],
+            superres=products.get("superres"),
+            refocus=products.get("refocus") or (),
+        )
         write_capture(dst, res, cal, extra=extra, save_views=save_views)
         return src, None
     except (LfcamError, OSError, ValueError) as exc:
@@ -344,7 +363,15 @@ def _cmd_process(args: argparse.Namespace) -> int:
 
     if args.jobs < 1:
         raise InputError(f"--jobs: must be >= 1, got {args.jobs}")
+    if args.superres is not None and not (1 <= args.superres <= 4):
+        raise InputError(f"--superres: expected a factor from 1 to 4, got {args.superres}")
     cal = Calibration.load(args.calibration)
+    if args.refocus and cal.metric:
+        bad = [z for z in args.refocus if not z > cal.z_c]
+        if bad:
+            raise InputError(f"--refocus: distances must be beyond Z_c = {cal.z_c:.3f} m: {bad}")
+    elif args.refocus:
+        raise InputError("--refocus: the calibration is relative (no Z_c): no metric focus")
     pairs = _find_captures(args.input, args.output)
     todo = [(s, d) for s, d in pairs if args.overwrite or not (d / "result.json").is_file()]
     skipped = len(pairs) - len(todo)
@@ -357,6 +384,8 @@ def _cmd_process(args: argparse.Namespace) -> int:
         "calibration_sha256": file_hash(args.calibration),
         "parameters": {"interp": "bilinear", "jobs": jobs, "threads": threads},
     }
+    if args.superres is not None or args.refocus:
+        extra["products"] = {"superres": args.superres, "refocus": list(args.refocus or [])}
     failures: list[tuple[str, str]] = []
     t0 = time.perf_counter()
     from tqdm import tqdm

@@ -148,6 +148,13 @@ def _to_u8(img: np.ndarray) -> np.ndarray:
     return np.round(np.clip(x, 0, 1) ** (1 / 2.2) * 255).astype(np.uint8)
 
 
+def _to_u16(img: np.ndarray) -> np.ndarray:
+    """Linear [0, 1] -> 16-bit with the same display gamma (1/2.2) as the previews."""
+    x = np.nan_to_num(img, nan=0.0)
+    out: np.ndarray = np.round(np.clip(x, 0, 1) ** (1 / 2.2) * 65535).astype(np.uint16)
+    return out
+
+
 def write_capture(
     out_dir: str | os.PathLike[str],
     result: CaptureResult,
@@ -160,7 +167,8 @@ def write_capture(
 
     Files: ``depth.tiff`` (float32 m, NaN unknown), ``depth.png`` (preview with
     a colour bar), ``confidence.tiff``, ``points.ply`` (coloured), ``result.json``
-    and, with ``save_views``, ``views/view_RR_CC.png``.
+    and, with ``save_views``, ``views/view_RR_CC.png``; ``superres.png`` and
+    ``refocus_<Z>m.png`` (16-bit RGB, display gamma 1/2.2) when the result has them.
     """
     out = Path(out_dir)
     with _atomic_folder(out) as tmp:
@@ -176,6 +184,10 @@ def write_capture(
         if colours.ndim == 1:
             colours = np.repeat(colours[:, None], 3, 1)
         write_ply(tmp / "points.ply", pts, colours)
+        if result.superres is not None:
+            write_image(tmp / "superres.png", _to_u16(result.superres))
+        for z, img in result.refocused.items():
+            write_image(tmp / f"refocus_{z:g}m.png", _to_u16(img))
         if save_views:
             (tmp / "views").mkdir()
             C = cal.grid[1]

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -68,6 +69,10 @@ class CaptureResult:
     depth: DepthResult
     source: str | None = None
     timings: dict[str, float] = field(default_factory=dict)
+    #: Super-resolved reference view ``(r H, r W, C)`` (``superres=r``), else None.
+    superres: np.ndarray | None = None
+    #: Refocused images by focus distance in metres (``refocus=(...)``).
+    refocused: dict[float, np.ndarray] = field(default_factory=dict)
 
 
 def process_capture(
@@ -76,6 +81,8 @@ def process_capture(
     *,
     interp: str = "bilinear",
     threads: int = 2,
+    superres: int | None = None,
+    refocus: Sequence[float] = (),
     **depth_options: Any,
 ) -> CaptureResult:
     """Everything one capture needs: read, rectify, flow, triangulate.
@@ -90,6 +97,11 @@ def process_capture(
         Rectification resampling.
     threads : int
         Concurrent optical flows.
+    superres : int, optional
+        Also super-resolve the reference view by this factor (1 to 4), from the raw
+        samples (:func:`lfcam.super_resolve`).
+    refocus : sequence of float
+        Also refocus at these distances, metres (:func:`lfcam.refocus`).
     **depth_options
         Passed to :func:`lfcam.estimate_depth`.
 
@@ -110,5 +122,16 @@ def process_capture(
     t2 = time.perf_counter()
     res = estimate_depth(views, cal, threads=threads, **depth_options)
     t3 = time.perf_counter()
-    timings = {"read": t1 - t0, "rectify": t2 - t1, **res.timings, "total": t3 - t0}
-    return CaptureResult(views, res, source, timings)
+    timings = {"read": t1 - t0, "rectify": t2 - t1, **res.timings}
+    out = CaptureResult(views, res, source, timings)
+    if superres is not None or refocus:
+        from .superres import refocus as _refocus
+        from .superres import super_resolve
+
+        if superres is not None:
+            out.superres = super_resolve(raw, cal, res, superres)
+        t4 = time.perf_counter()
+        out.refocused = {float(z): _refocus(raw, cal, float(z)) for z in refocus}
+        timings.update(superres=t4 - t3, refocus=time.perf_counter() - t4)
+    timings["total"] = time.perf_counter() - t0
+    return out

@@ -17,6 +17,7 @@ pub mod parallel;
 pub mod rectify;
 pub mod remap;
 pub mod stats;
+pub mod superres;
 pub mod triangulate;
 
 pub use crate::crop::crop_lenslets;

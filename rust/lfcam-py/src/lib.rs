@@ -12,6 +12,7 @@ mod fill;
 mod rectify;
 mod remap;
 mod stats;
+mod superres;
 mod threads;
 mod triangulate;
 
@@ -34,6 +35,8 @@ mod lfcam_ext {
     use crate::remap::remap_bilinear;
     #[pymodule_export]
     use crate::stats::nan_median;
+    #[pymodule_export]
+    use crate::superres::{btv_deblur, invert_maps, place_samples, shift_and_add};
     #[pymodule_export]
     use crate::threads::{get_num_threads, set_num_threads};
     #[pymodule_export]

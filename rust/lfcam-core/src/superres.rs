@@ -1,0 +1,1125 @@
+//! Super-resolution kernels (DESIGN.md section 5): warp-map inversion, placement of raw
+//! samples in the reference view's rectified frame, robust shift-and-add onto an
+//! r-times finer grid, and bilateral-TV deblurring (Farsiu, Robinson, Elad, Milanfar
+//! 2004, "Fast and robust multiframe super resolution").
+//!
+//! # Conventions
+//! Positions follow OpenCV: `(x, y)`, `x` the column, pixel centres at integers. A
+//! rectified position `x` lands on the `r`-times finer grid at `X = (x + 0.5) r - 0.5`
+//! (DESIGN.md section 2: fine pixel `U` sits at rectified `(U + 0.5) / r - 0.5`).
+//!
+//! # Indexing
+//! Every function checks all sizes up front; the inner loops then index slices whose
+//! lengths those checks guarantee, with explicit bounds tests on every computed index.
+
+// Sizes are checked at the top of each public function and every computed index is
+// bounds-tested before use (`get` or an explicit comparison with the checked length).
+#![allow(clippy::indexing_slicing)]
+
+use rayon::prelude::*;
+
+use crate::error::{Error, Result};
+use crate::parallel;
+
+/// Largest super-resolution factor (and channel count) the kernels accept.
+pub const MAX_FACTOR: f32 = 16.0;
+/// Largest number of interleaved channels.
+pub const MAX_CHANNELS: usize = 4;
+/// Largest splat kernel radius, fine px.
+pub const MAX_RADIUS: usize = 16;
+
+/// `v > 0` (false for NaN): written as a function so that `!positive(v)` reads as
+/// "not a usable positive number".
+#[inline(always)]
+fn positive(v: f32) -> bool {
+    v > 0.0
+}
+
+fn check_len(arg: &str, got: usize, want: usize, what: &str) -> Result<()> {
+    if got == want {
+        Ok(())
+    } else {
+        Err(Error::invalid_argument(
+            arg,
+            format!("has {got} elements, {what} needs {want}"),
+        ))
+    }
+}
+
+fn mul(arg: &str, dims: &[usize]) -> Result<usize> {
+    dims.iter()
+        .try_fold(1usize, |a, &d| a.checked_mul(d))
+        .ok_or_else(|| Error::invalid_argument(arg, format!("shape {dims:?} is too large")))
+}
+
+// --------------------------------------------------------------------------------------
+// Map inversion
+// --------------------------------------------------------------------------------------
+
+/// The rectified position `(u + a, v + b)` of the raw point `(px, py)` inside the cell
+/// whose corners map to `p00 = w(u, v)`, `p10 = w(u + 1, v)`, `p01 = w(u, v + 1)`,
+/// `p11 = w(u + 1, v + 1)`: Newton's method on the bilinear patch, from its centre.
+/// Returns `(a, b)` if it converged inside the cell (with a tolerance `eps`).
+#[inline]
+fn invert_bilinear(
+    p00: [f32; 2],
+    p10: [f32; 2],
+    p01: [f32; 2],
+    p11: [f32; 2],
+    px: f32,
+    py: f32,
+    eps: f32,
+) -> Option<(f32, f32)> {
+    let (mut a, mut b) = (0.5f32, 0.5f32);
+    for _ in 0..6 {
+        let fx = (1.0 - a) * (1.0 - b) * p00[0]
+            + a * (1.0 - b) * p10[0]
+            + (1.0 - a) * b * p01[0]
+            + a * b * p11[0]
+            - px;
+        let fy = (1.0 - a) * (1.0 - b) * p00[1]
+            + a * (1.0 - b) * p10[1]
+            + (1.0 - a) * b * p01[1]
+            + a * b * p11[1]
+            - py;
+        let dxa = (1.0 - b) * (p10[0] - p00[0]) + b * (p11[0] - p01[0]);
+        let dya = (1.0 - b) * (p10[1] - p00[1]) + b * (p11[1] - p01[1]);
+        let dxb = (1.0 - a) * (p01[0] - p00[0]) + a * (p11[0] - p10[0]);
+        let dyb = (1.0 - a) * (p01[1] - p00[1]) + a * (p11[1] - p10[1]);
+        let det = dxa * dyb - dxb * dya;
+        if !positive(det.abs() - 1e-12) {
+            return None;
+        }
+        let da = (fx * dyb - fy * dxb) / det;
+        let db = (dxa * fy - dya * fx) / det;
+        a -= da;
+        b -= db;
+        if da.abs() < 1e-6 && db.abs() < 1e-6 {
+            break;
+        }
+    }
+    (a >= -eps && a <= 1.0 + eps && b >= -eps && b <= 1.0 + eps && a.is_finite() && b.is_finite())
+        .then_some((a, b))
+}
+
+/// Inverts one view's warp map: for each pixel of its crop (`crop_h x crop_w`, raw
+/// pixel centres at integers relative to the crop), the rectified position `(u, v)`
+/// that the map sends there, NaN where no valid rectified cell covers it.
+///
+/// `warp` is `(h, w, 2)`, `mask` `(h, w)` (non-zero: valid) or `None`; `out` is
+/// `(crop_h, crop_w, 2)`. A cell is valid when its four corners are finite and
+/// unmasked. Raw points covered by two cells (on shared edges) take the first.
+///
+/// # Errors
+/// [`Error::InvalidArgument`] naming `warp`, `mask` or `out` if a size disagrees.
+pub fn invert_map(
+    warp: &[f32],
+    mask: Option<&[u8]>,
+    h: usize,
+    w: usize,
+    crop_h: usize,
+    crop_w: usize,
+    out: &mut [f32],
+) -> Result<()> {
+    check_len("warp", warp.len(), mul("warp", &[h, w, 2])?, "(H, W, 2)")?;
+    if let Some(m) = mask {
+        check_len("mask", m.len(), mul("mask", &[h, w])?, "(H, W)")?;
+    }
+    check_len(
+        "out",
+        out.len(),
+        mul("out", &[crop_h, crop_w, 2])?,
+        "(crop_h, crop_w, 2)",
+    )?;
+    out.fill(f32::NAN);
+    if h < 2 || w < 2 {
+        return Ok(());
+    }
+    let ok = |y: usize, x: usize| mask.is_none_or(|m| m[y * w + x] != 0);
+    let at = |y: usize, x: usize| [warp[(y * w + x) * 2], warp[(y * w + x) * 2 + 1]];
+    let (cw, ch) = (crop_w as f32, crop_h as f32);
+    for v in 0..h - 1 {
+        for u in 0..w - 1 {
+            if !(ok(v, u) && ok(v, u + 1) && ok(v + 1, u) && ok(v + 1, u + 1)) {
+                continue;
+            }
+            let (p00, p10, p01, p11) = (at(v, u), at(v, u + 1), at(v + 1, u), at(v + 1, u + 1));
+            let xs = [p00[0], p10[0], p01[0], p11[0]];
+            let ys = [p00[1], p10[1], p01[1], p11[1]];
+            if xs.iter().chain(ys.iter()).any(|c| !c.is_finite()) {
+                continue;
+            }
+            let xmin = xs.iter().copied().fold(f32::INFINITY, f32::min).max(0.0);
+            let xmax = xs
+                .iter()
+                .copied()
+                .fold(f32::NEG_INFINITY, f32::max)
+                .min(cw - 1.0);
+            let ymin = ys.iter().copied().fold(f32::INFINITY, f32::min).max(0.0);
+            let ymax = ys
+                .iter()
+                .copied()
+                .fold(f32::NEG_INFINITY, f32::max)
+                .min(ch - 1.0);
+            if !(xmin <= xmax && ymin <= ymax) {
+                continue;
+            }
+            for py in (ymin.ceil() as usize)..=(ymax.floor() as usize) {
+                for px in (xmin.ceil() as usize)..=(xmax.floor() as usize) {
+                    if px >= crop_w || py >= crop_h {
+                        continue;
+                    }
+                    let k = (py * crop_w + px) * 2;
+                    if out[k].is_finite() {
+                        continue;
+                    }
+                    if let Some((a, b)) =
+                        invert_bilinear(p00, p10, p01, p11, px as f32, py as f32, 1e-4)
+                    {
+                        out[k] = u as f32 + a;
+                        out[k + 1] = v as f32 + b;
+                    }
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
+/// [`invert_map`] for all `N` views at once, in parallel over views, written into one
+/// raw-frame-sized map: `inv` `(raw_h, raw_w, 2)` gets the rectified position of each
+/// raw pixel in its view's frame (NaN if none) and `view` `(raw_h, raw_w)` the view's
+/// index (-1 if none). `warps` is `(N, h, w, 2)` relative to each crop, `masks`
+/// `(N, h, w)` or `None`, `crops` `(x0, y0, cw, ch)` per view. A raw pixel inside two
+/// crops takes the first view that covers it.
+///
+/// # Errors
+/// [`Error::InvalidArgument`] or [`Error::InvalidItem`] (a crop outside the frame).
+#[allow(clippy::too_many_arguments)]
+pub fn invert_maps(
+    warps: &[f32],
+    masks: Option<&[u8]>,
+    crops: &[[i64; 4]],
+    h: usize,
+    w: usize,
+    raw_h: usize,
+    raw_w: usize,
+    inv: &mut [f32],
+    view: &mut [i32],
+) -> Result<()> {
+    let n = crops.len();
+    let per = mul("warps", &[h, w, 2])?;
+    check_len(
+        "warps",
+        warps.len(),
+        mul("warps", &[n, h, w, 2])?,
+        "(N, H, W, 2)",
+    )?;
+    if let Some(m) = masks {
+        check_len("masks", m.len(), mul("masks", &[n, h, w])?, "(N, H, W)")?;
+    }
+    check_len(
+        "inv",
+        inv.len(),
+        mul("inv", &[raw_h, raw_w, 2])?,
+        "(H_raw, W_raw, 2)",
+    )?;
+    check_len(
+        "view",
+        view.len(),
+        mul("view", &[raw_h, raw_w])?,
+        "(H_raw, W_raw)",
+    )?;
+    let mut rects = Vec::with_capacity(n);
+    for (i, c) in crops.iter().enumerate() {
+        let [x0, y0, cw, ch] = *c;
+        let inside = x0 >= 0
+            && y0 >= 0
+            && cw > 0
+            && ch > 0
+            && x0.checked_add(cw).is_some_and(|x1| x1 <= raw_w as i64)
+            && y0.checked_add(ch).is_some_and(|y1| y1 <= raw_h as i64);
+        if !inside {
+            return Err(Error::invalid_item(
+                "crops",
+                i,
+                format!("rectangle {c:?} is empty or outside the {raw_w}x{raw_h} frame"),
+            ));
+        }
+        rects.push([x0 as usize, y0 as usize, cw as usize, ch as usize]);
+    }
+    let per_view: Vec<Vec<f32>> = (0..n)
+        .into_par_iter()
+        .map(|i| {
+            let [_, _, cw, ch] = rects[i];
+            let mut buf = vec![0f32; ch * cw * 2];
+            let m = masks.map(|m| &m[i * h * w..(i + 1) * h * w]);
+            invert_map(&warps[i * per..(i + 1) * per], m, h, w, ch, cw, &mut buf)?;
+            Ok(buf)
+        })
+        .collect::<Result<_>>()?;
+    inv.fill(f32::NAN);
+    view.fill(-1);
+    for (i, (buf, rect)) in per_view.iter().zip(&rects).enumerate() {
+        let [x0, y0, cw, ch] = *rect;
+        for yc in 0..ch {
+            for xc in 0..cw {
+                let s = (yc * cw + xc) * 2;
+                let d = (y0 + yc) * raw_w + x0 + xc;
+                if buf[s].is_finite() && view[d] < 0 {
+                    inv[2 * d] = buf[s];
+                    inv[2 * d + 1] = buf[s + 1];
+                    view[d] = i as i32;
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
+// --------------------------------------------------------------------------------------
+// Placement in the reference frame
+// --------------------------------------------------------------------------------------
+
+/// Bilinear sample of a `(h, w)` map at `(x, y)`, skipping NaN corners (the others are
+/// renormalised); NaN if the finite corners carry less than half the weight or the
+/// point is outside the map by more than half a pixel.
+#[inline]
+fn sample_nan_aware(map: &[f32], h: usize, w: usize, x: f32, y: f32) -> f32 {
+    if !(x >= -0.5 && y >= -0.5 && x <= w as f32 - 0.5 && y <= h as f32 - 0.5) {
+        return f32::NAN;
+    }
+    let xc = x.clamp(0.0, (w - 1) as f32);
+    let yc = y.clamp(0.0, (h - 1) as f32);
+    let x0 = (xc as usize).min(w - 1);
+    let y0 = (yc as usize).min(h - 1);
+    let x1 = (x0 + 1).min(w - 1);
+    let y1 = (y0 + 1).min(h - 1);
+    let (tx, ty) = (xc - x0 as f32, yc - y0 as f32);
+    let mut acc = 0.0f32;
+    let mut wsum = 0.0f32;
+    for (yy, wy) in [(y0, 1.0 - ty), (y1, ty)] {
+        for (xx, wx) in [(x0, 1.0 - tx), (x1, tx)] {
+            let v = map[yy * w + xx];
+            let wt = wx * wy;
+            if v.is_finite() && wt > 0.0 {
+                acc += wt * v;
+                wsum += wt;
+            }
+        }
+    }
+    if wsum >= 0.5 { acc / wsum } else { f32::NAN }
+}
+
+/// Parameters of [`place_samples`].
+#[derive(Debug, Clone, Copy)]
+pub struct PlaceParams {
+    /// Fixed-point iterations of `p = q - o_i s(p)`.
+    pub iterations: usize,
+    /// Largest accepted `|p + o_i s(p) - q|`, rectified px; other samples are dropped
+    /// (no consistent reference point: occluded in the reference, or no depth).
+    pub tolerance: f32,
+}
+
+/// Places raw samples in the reference view's rectified frame.
+///
+/// For raw pixel `k` of view `i = view[k]` (skipped if negative) at rectified position
+/// `q = inv[k]` in its own view, finds the reference point `p` with
+/// `p + o_i s(p) = q` (DESIGN.md section 3) by the fixed-point iteration
+/// `p <- q - o_i s(p)` from `p = q`, `s` sampled bilinearly from `parallax` `(h, w)`
+/// (NaN: unknown). Writes `p` to `out` (same layout as `inv`), NaN where the
+/// iteration did not reach `tolerance` or the parallax is unknown. The reference view
+/// (`o_i = 0`) keeps `q`.
+///
+/// # Errors
+/// [`Error::InvalidArgument`] naming the argument whose size disagrees, or
+/// `offsets` if a view index in `view` has no offset.
+#[allow(clippy::too_many_arguments)]
+pub fn place_samples(
+    inv: &[f32],
+    view: &[i32],
+    offsets: &[[f64; 2]],
+    parallax: &[f32],
+    h: usize,
+    w: usize,
+    params: &PlaceParams,
+    out: &mut [f32],
+) -> Result<()> {
+    let m = view.len();
+    check_len(
+        "inv",
+        inv.len(),
+        mul("inv", &[m, 2])?,
+        "(..., 2) with view's size",
+    )?;
+    check_len("out", out.len(), inv.len(), "inv's size")?;
+    check_len(
+        "parallax",
+        parallax.len(),
+        mul("parallax", &[h, w])?,
+        "(H, W)",
+    )?;
+    if h == 0 || w == 0 {
+        return Err(Error::invalid_argument("parallax", "is empty"));
+    }
+    if let Some(&bad) = view
+        .iter()
+        .find(|&&v| v >= 0 && v as usize >= offsets.len())
+    {
+        return Err(Error::invalid_argument(
+            "offsets",
+            format!("has {} rows, but view index {bad} is used", offsets.len()),
+        ));
+    }
+    let tol = params.tolerance;
+    let body = |first: usize, rows: &mut [f32]| -> Result<()> {
+        for (j, o) in rows.chunks_exact_mut(2).enumerate() {
+            // Rows of 2 elements: row `first + j` is sample `first + j`.
+            let idx = first + j;
+            let vi = view[idx];
+            let (qx, qy) = (inv[2 * idx], inv[2 * idx + 1]);
+            if vi < 0 || !qx.is_finite() || !qy.is_finite() {
+                o[0] = f32::NAN;
+                o[1] = f32::NAN;
+                continue;
+            }
+            let off = offsets[vi as usize];
+            let (ox, oy) = (off[0] as f32, off[1] as f32);
+            if ox == 0.0 && oy == 0.0 {
+                o[0] = qx;
+                o[1] = qy;
+                continue;
+            }
+            let (mut px, mut py) = (qx, qy);
+            let mut s = sample_nan_aware(parallax, h, w, px, py);
+            for _ in 0..params.iterations {
+                if !s.is_finite() {
+                    break;
+                }
+                let (nx, ny) = (qx - ox * s, qy - oy * s);
+                let moved = (nx - px).abs() + (ny - py).abs();
+                px = nx;
+                py = ny;
+                s = sample_nan_aware(parallax, h, w, px, py);
+                if moved < 1e-4 {
+                    break; // converged: p no longer moves
+                }
+            }
+            let ok = s.is_finite() && {
+                let (ex, ey) = (px + ox * s - qx, py + oy * s - qy);
+                ex * ex + ey * ey <= tol * tol
+            };
+            o[0] = if ok { px } else { f32::NAN };
+            o[1] = if ok { py } else { f32::NAN };
+        }
+        Ok(())
+    };
+    parallel::for_each_row_chunk(out, 2, body)
+}
+
+// --------------------------------------------------------------------------------------
+// Shift-and-add
+// --------------------------------------------------------------------------------------
+
+/// Parameters of [`shift_and_add`].
+#[derive(Debug, Clone, Copy)]
+pub struct SplatParams {
+    /// The fine grid's factor `r` (> 0): rectified `x` lands at `(x + 0.5) r - 0.5`.
+    pub factor: f32,
+    /// Gaussian splat kernel's standard deviation, fine px; 0: nearest fine pixel only.
+    pub sigma: f32,
+    /// Kernel radius, fine px (taps with `|dX|, |dY| <= radius` around the nearest
+    /// pixel); ignored (0) when `sigma` is 0.
+    pub radius: usize,
+    /// Robust reweighting passes (0: plain weighted mean).
+    pub iterations: usize,
+    /// Huber scale of the robust weights: a sample whose mean absolute residual over
+    /// the channels is `e` gets weight `min(1, huber / e)` (an L1 fit beyond `huber`).
+    pub huber: f32,
+    /// Samples with residual above this are rejected outright (occlusions, mismatches).
+    pub reject: f32,
+}
+
+/// A sample's fine position and its nearest fine pixel.
+#[inline]
+fn fine_pos(positions: &[f32], k: usize, factor: f32) -> Option<(f32, f32)> {
+    let (x, y) = (positions[2 * k], positions[2 * k + 1]);
+    let fx = (x + 0.5) * factor - 0.5;
+    let fy = (y + 0.5) * factor - 0.5;
+    (fx.is_finite() && fy.is_finite()).then_some((fx, fy))
+}
+
+/// The nearest fine pixel index, `floor(v + 0.5)` (round half up), without a libm
+/// call: `v` is finite here, and positions beyond +-2^30 px are off any grid anyway.
+#[inline(always)]
+fn nearest(v: f32) -> i64 {
+    const SHIFT: f64 = (1u64 << 30) as f64;
+    ((f64::from(v) + 0.5 + SHIFT) as i64) - (1i64 << 30)
+}
+
+/// Samples per binning chunk: fixed (not per thread), so that the order in which a
+/// pixel's samples are summed, hence the result, does not depend on the thread count.
+const BIN_CHUNK: usize = 1 << 16;
+
+/// One chunk's samples sorted into bands (a counting sort): band `b`'s samples are
+/// `items[starts[b]..starts[b + 1]]`, in increasing order.
+struct ChunkBins {
+    starts: Vec<u32>,
+    items: Vec<u32>,
+}
+
+struct Bins {
+    band_rows: usize,
+    chunks: Vec<ChunkBins>,
+}
+
+/// Samples sorted into bands of output rows (a sample whose kernel touches two bands
+/// is in both), so that bands can be accumulated in parallel without sharing output.
+/// Chunks of [`BIN_CHUNK`] samples are sorted in parallel.
+fn bin_samples(
+    positions: &[f32],
+    weights: Option<&[f32]>,
+    m: usize,
+    factor: f32,
+    radius: usize,
+    fine_h: usize,
+    band_rows: usize,
+) -> Result<Bins> {
+    if m > u32::MAX as usize {
+        return Err(Error::invalid_argument(
+            "positions",
+            format!("{m} samples: at most {} are supported", u32::MAX),
+        ));
+    }
+    let n_bands = fine_h.div_ceil(band_rows);
+    let r = radius as i64;
+    let span = |k: usize| -> Option<(usize, usize)> {
+        if weights.is_some_and(|wt| !positive(wt[k])) {
+            return None;
+        }
+        let (_, fy) = fine_pos(positions, k, factor)?;
+        let yc = nearest(fy);
+        let lo = (yc - r).max(0);
+        let hi = (yc + r).min(fine_h as i64 - 1);
+        (lo <= hi).then(|| (lo as usize / band_rows, hi as usize / band_rows))
+    };
+    let one = |c: usize| -> ChunkBins {
+        let k0 = c * BIN_CHUNK;
+        let k1 = (k0 + BIN_CHUNK).min(m);
+        let mut counts = vec![0u32; n_bands + 1];
+        let spans: Vec<Option<(usize, usize)>> = (k0..k1).map(span).collect();
+        for (b0, b1) in spans.iter().flatten() {
+            for b in *b0..=*b1 {
+                counts[b + 1] += 1;
+            }
+        }
+        for b in 0..n_bands {
+            counts[b + 1] += counts[b];
+        }
+        let mut items = vec![0u32; counts[n_bands] as usize];
+        let mut fill = counts.clone();
+        for (j, sp) in spans.iter().enumerate() {
+            if let Some((b0, b1)) = *sp {
+                for f in fill.iter_mut().take(b1 + 1).skip(b0) {
+                    items[*f as usize] = (k0 + j) as u32;
+                    *f += 1;
+                }
+            }
+        }
+        ChunkBins {
+            starts: counts,
+            items,
+        }
+    };
+    let n_chunks = m.div_ceil(BIN_CHUNK);
+    let chunks = if n_chunks <= 1 {
+        (0..n_chunks).map(one).collect()
+    } else {
+        parallel::install(|| (0..n_chunks).into_par_iter().map(one).collect())?
+    };
+    Ok(Bins { band_rows, chunks })
+}
+
+/// Accumulates the samples of one band into its rows.
+#[allow(clippy::too_many_arguments)]
+fn splat_band(
+    band: usize,
+    bins: &Bins,
+    positions: &[f32],
+    values: &[f32],
+    weights: &[f32],
+    channels: usize,
+    fine_w: usize,
+    fine_h: usize,
+    params: &SplatParams,
+    sum: &mut [f32],
+    wsum: &mut [f32],
+) {
+    sum.fill(0.0);
+    wsum.fill(0.0);
+    let row0 = band * bins.band_rows;
+    let nrows = wsum.len() / fine_w;
+    let r = if params.sigma > 0.0 {
+        params.radius as i64
+    } else {
+        0
+    };
+    let inv2s2 = if params.sigma > 0.0 {
+        1.0 / (2.0 * params.sigma * params.sigma)
+    } else {
+        0.0
+    };
+    let band_items = bins.chunks.iter().flat_map(|c| {
+        let (a, b) = (c.starts[band] as usize, c.starts[band + 1] as usize);
+        &c.items[a..b]
+    });
+    for &k in band_items {
+        let k = k as usize;
+        let wk = weights[k];
+        if !positive(wk) {
+            continue;
+        }
+        let Some((fx, fy)) = fine_pos(positions, k, params.factor) else {
+            continue;
+        };
+        let xc = nearest(fx);
+        let yc = nearest(fy);
+        let v = &values[k * channels..(k + 1) * channels];
+        if v.iter().any(|c| !c.is_finite()) {
+            continue;
+        }
+        // The Gaussian is separable: (2r + 1) exponentials per axis, not per tap.
+        let mut gx = [1f32; 2 * MAX_RADIUS + 1];
+        if r > 0 {
+            for (t, g) in gx.iter_mut().enumerate().take(2 * r as usize + 1) {
+                let dx = (xc - r + t as i64) as f32 - fx;
+                *g = (-dx * dx * inv2s2).exp();
+            }
+        }
+        for yy in (yc - r)..=(yc + r) {
+            if yy < row0 as i64 || yy >= (row0 + nrows) as i64 || yy >= fine_h as i64 {
+                continue;
+            }
+            let dy = yy as f32 - fy;
+            let gy = if r == 0 {
+                1.0
+            } else {
+                (-dy * dy * inv2s2).exp()
+            };
+            let ly = (yy as usize - row0) * fine_w;
+            for (t, xx) in ((xc - r)..=(xc + r)).enumerate() {
+                if xx < 0 || xx >= fine_w as i64 {
+                    continue;
+                }
+                let wt = wk * gy * gx[t];
+                let p = ly + xx as usize;
+                wsum[p] += wt;
+                let s = &mut sum[p * channels..(p + 1) * channels];
+                for (a, &b) in s.iter_mut().zip(v) {
+                    *a += wt * b;
+                }
+            }
+        }
+    }
+}
+
+/// The fused estimate `sum / wsum` at fine `(x, y)`: bilinear (clamped to the grid)
+/// over the corners that have weight, channel by channel into `out`; false if none.
+#[allow(clippy::too_many_arguments)]
+#[inline]
+fn estimate_at(
+    sum: &[f32],
+    wsum: &[f32],
+    h: usize,
+    w: usize,
+    c: usize,
+    x: f32,
+    y: f32,
+    out: &mut [f32],
+) -> bool {
+    let xc = x.clamp(0.0, (w - 1) as f32);
+    let yc = y.clamp(0.0, (h - 1) as f32);
+    let x0 = (xc as usize).min(w - 1);
+    let y0 = (yc as usize).min(h - 1);
+    let x1 = (x0 + 1).min(w - 1);
+    let y1 = (y0 + 1).min(h - 1);
+    let (tx, ty) = (xc - x0 as f32, yc - y0 as f32);
+    let mut total = 0.0f32;
+    out.iter_mut().take(c).for_each(|o| *o = 0.0);
+    for (yy, wy) in [(y0, 1.0 - ty), (y1, ty)] {
+        for (xx, wx) in [(x0, 1.0 - tx), (x1, tx)] {
+            let p = yy * w + xx;
+            let ws = wsum[p];
+            let b = wx * wy;
+            if ws > 1e-6 && b > 0.0 {
+                total += b;
+                for (o, &v) in out.iter_mut().zip(&sum[p * c..(p + 1) * c]) {
+                    *o += b * v / ws;
+                }
+            }
+        }
+    }
+    if total < 0.25 {
+        return false;
+    }
+    out.iter_mut().take(c).for_each(|o| *o /= total);
+    true
+}
+
+/// Robust shift-and-add of scattered samples onto a fine grid.
+///
+/// Sample `k` (value `values[k*C..(k+1)*C]`, weight `weights[k]`, default 1; NaN or
+/// non-positive weights and NaN positions or values are skipped) at rectified position
+/// `positions[k] = (x, y)` lands at fine `(X, Y) = ((x + 0.5) r - 0.5, (y + 0.5) r -
+/// 0.5)`. With `sigma = 0` it adds to the nearest fine pixel (round half up); else to the pixels within `radius` of it, with Gaussian weights
+/// `exp(-|(U, V) - (X, Y)|^2 / (2 sigma^2))`. Writes `sum` `(fine_h, fine_w, C)`, the
+/// weighted sums `sum_k w_k g_k v_k`, and `wsum` `(fine_h, fine_w)`, `sum_k w_k g_k`.
+///
+/// With `iterations > 0`, each pass computes the estimate `sum / wsum`, each sample's
+/// residual against it (bilinear at `(X, Y)`, mean absolute over channels) and
+/// reweights: `w_k min(1, huber / e_k)`, 0 if `e_k > reject` (robust, L1-like: Farsiu
+/// et al. 2003's robust shift-and-add), then accumulates again.
+///
+/// Parallel over bands of output rows; the result does not depend on the thread count.
+///
+/// # Errors
+/// [`Error::InvalidArgument`] naming the argument whose size or value is unusable.
+#[allow(clippy::too_many_arguments)]
+pub fn shift_and_add(
+    positions: &[f32],
+    values: &[f32],
+    weights: Option<&[f32]>,
+    channels: usize,
+    fine_h: usize,
+    fine_w: usize,
+    params: &SplatParams,
+    sum: &mut [f32],
+    wsum: &mut [f32],
+) -> Result<()> {
+    if !(1..=MAX_CHANNELS).contains(&channels) {
+        return Err(Error::invalid_argument(
+            "values",
+            format!("must have 1 to {MAX_CHANNELS} channels, got {channels}"),
+        ));
+    }
+    if !positions.len().is_multiple_of(2) {
+        return Err(Error::invalid_argument(
+            "positions",
+            "must be (M, 2) positions (x, y)",
+        ));
+    }
+    let m = positions.len() / 2;
+    check_len(
+        "values",
+        values.len(),
+        mul("values", &[m, channels])?,
+        "(M, C)",
+    )?;
+    if let Some(wt) = weights {
+        check_len("weights", wt.len(), m, "(M,)")?;
+    }
+    if fine_h == 0 || fine_w == 0 {
+        return Err(Error::invalid_argument("shape", "the fine grid is empty"));
+    }
+    check_len(
+        "sum",
+        sum.len(),
+        mul("sum", &[fine_h, fine_w, channels])?,
+        "(H, W, C)",
+    )?;
+    check_len(
+        "wsum",
+        wsum.len(),
+        mul("wsum", &[fine_h, fine_w])?,
+        "(H, W)",
+    )?;
+    if !(params.factor > 0.0 && params.factor <= MAX_FACTOR) {
+        return Err(Error::invalid_argument(
+            "factor",
+            format!("must be in (0, {MAX_FACTOR}], got {}", params.factor),
+        ));
+    }
+    if !(params.sigma >= 0.0 && params.sigma.is_finite()) || params.radius > MAX_RADIUS {
+        return Err(Error::invalid_argument(
+            "sigma",
+            format!(
+                "needs sigma >= 0 and radius <= 16, got {} and {}",
+                params.sigma, params.radius
+            ),
+        ));
+    }
+    if params.iterations > 0 && !(params.huber > 0.0 && params.reject > 0.0) {
+        return Err(Error::invalid_argument(
+            "huber",
+            "robust passes need huber > 0 and reject > 0",
+        ));
+    }
+    let radius = if params.sigma > 0.0 { params.radius } else { 0 };
+    let threads = parallel::num_threads();
+    let band_rows = parallel::rows_per_task(fine_h, fine_w * (channels + 1) * 4, threads)
+        .max(2 * radius + 1)
+        .max(4);
+    let bins = bin_samples(
+        positions,
+        weights,
+        m,
+        params.factor,
+        radius,
+        fine_h,
+        band_rows,
+    )?;
+    let mut wk: Vec<f32> = match weights {
+        Some(wt) => wt.to_vec(),
+        None => vec![1.0; m],
+    };
+    let row_len = fine_w * channels;
+    let accumulate = |wk: &[f32], sum: &mut [f32], wsum: &mut [f32]| -> Result<()> {
+        let go = |(b, (s, ws)): (usize, (&mut [f32], &mut [f32]))| {
+            splat_band(
+                b, &bins, positions, values, wk, channels, fine_w, fine_h, params, s, ws,
+            );
+        };
+        let chunks = sum
+            .chunks_mut(band_rows * row_len)
+            .zip(wsum.chunks_mut(band_rows * fine_w));
+        if parallel::run_serially(fine_h * fine_w * (channels + 1) * 4, threads) {
+            chunks.enumerate().for_each(go);
+            Ok(())
+        } else {
+            parallel::install(|| {
+                sum.par_chunks_mut(band_rows * row_len)
+                    .zip(wsum.par_chunks_mut(band_rows * fine_w))
+                    .enumerate()
+                    .for_each(go);
+            })
+        }
+    };
+    accumulate(&wk, sum, wsum)?;
+    for _ in 0..params.iterations {
+        // The estimate sum / wsum, read on the fly (sum and wsum are rebuilt by the
+        // next accumulation).
+        let (est_sum, est_w): (&[f32], &[f32]) = (sum, wsum);
+        let base = weights;
+        let reweight = |first: usize, chunk: &mut [f32]| -> Result<()> {
+            let mut buf = [0f32; MAX_CHANNELS];
+            for (j, w) in chunk.iter_mut().enumerate() {
+                let k = first + j;
+                let w0 = base.map_or(1.0, |b| b[k]);
+                if !positive(w0) {
+                    *w = 0.0;
+                    continue;
+                }
+                let Some((fx, fy)) = fine_pos(positions, k, params.factor) else {
+                    *w = 0.0;
+                    continue;
+                };
+                if !estimate_at(est_sum, est_w, fine_h, fine_w, channels, fx, fy, &mut buf) {
+                    *w = w0; // no estimate there yet: keep the sample
+                    continue;
+                }
+                let v = &values[k * channels..(k + 1) * channels];
+                let e = v
+                    .iter()
+                    .zip(&buf[..channels])
+                    .map(|(a, b)| (a - b).abs())
+                    .sum::<f32>()
+                    / channels as f32;
+                let keep = e <= params.reject; // false for NaN
+                *w = if !keep {
+                    0.0
+                } else if e > params.huber {
+                    w0 * params.huber / e
+                } else {
+                    w0
+                };
+            }
+            Ok(())
+        };
+        parallel::for_each_row_chunk(&mut wk, 1, reweight)?;
+        accumulate(&wk, sum, wsum)?;
+    }
+    Ok(())
+}
+
+// --------------------------------------------------------------------------------------
+// Bilateral-TV deblurring
+// --------------------------------------------------------------------------------------
+
+/// Parameters of [`btv_deblur`].
+#[derive(Debug, Clone, Copy)]
+pub struct BtvParams {
+    /// Standard deviation of the Gaussian blur `H` between the image sought and the
+    /// shift-and-add image, fine px (0: no blur, pure denoising).
+    pub psf_sigma: f32,
+    /// Regularisation weight `lambda`.
+    pub lambda: f32,
+    /// Decay `alpha` (0 < alpha <= 1) of the BTV weights `alpha^(|l| + |m|)`.
+    pub alpha: f32,
+    /// BTV window `P`: shifts `|l|, |m| <= P`.
+    pub window: usize,
+    /// Steepest-descent iterations.
+    pub iterations: usize,
+    /// Step `beta`.
+    pub step: f32,
+    /// Smoothing of `sign` (`t / sqrt(t^2 + eps^2)`), image units; 0: exact sign.
+    pub eps: f32,
+}
+
+fn gaussian_taps(sigma: f32) -> Vec<f32> {
+    if !positive(sigma) {
+        return vec![1.0];
+    }
+    // Truncated at 2.5 sigma (98.8% of the mass, renormalised).
+    let r = (2.5 * sigma).ceil() as i64;
+    let mut k: Vec<f32> = (-r..=r)
+        .map(|d| (-(d * d) as f32 / (2.0 * sigma * sigma)).exp())
+        .collect();
+    let s: f32 = k.iter().sum();
+    k.iter_mut().for_each(|v| *v /= s);
+    k
+}
+
+/// Separable Gaussian blur with clamped borders, `src` -> `dst` via `tmp`. Rows are
+/// processed as flat `W * C` slices (channel stride `c`), so the interior loops are
+/// plain multiply-adds over contiguous memory that the compiler vectorises.
+fn blur(
+    src: &[f32],
+    tmp: &mut [f32],
+    dst: &mut [f32],
+    h: usize,
+    w: usize,
+    c: usize,
+    taps: &[f32],
+) -> Result<()> {
+    let r = taps.len() / 2;
+    let row_len = w * c;
+    parallel::for_each_row_chunk(tmp, row_len, |first, rows| {
+        // A padded copy of the row (clamped borders), then a straight convolution.
+        let mut pad = vec![0f32; (w + 2 * r) * c];
+        for (j, out) in rows.chunks_exact_mut(row_len).enumerate() {
+            let y = first + j;
+            let src_row = &src[y * row_len..(y + 1) * row_len];
+            for k in 0..w + 2 * r {
+                let xx = k.saturating_sub(r).min(w - 1);
+                pad[k * c..(k + 1) * c].copy_from_slice(&src_row[xx * c..(xx + 1) * c]);
+            }
+            out.fill(0.0);
+            for (t, &g) in taps.iter().enumerate() {
+                let seg = &pad[t * c..t * c + row_len];
+                for (o, &v) in out.iter_mut().zip(seg) {
+                    *o += g * v;
+                }
+            }
+        }
+        Ok(())
+    })?;
+    let tmp: &[f32] = tmp;
+    parallel::for_each_row_chunk(dst, row_len, |first, rows| {
+        for (j, out) in rows.chunks_exact_mut(row_len).enumerate() {
+            let y = first + j;
+            out.fill(0.0);
+            for (t, &g) in taps.iter().enumerate() {
+                let yy = (y + t).saturating_sub(r).min(h - 1);
+                let row = &tmp[yy * row_len..(yy + 1) * row_len];
+                for (o, &v) in out.iter_mut().zip(row) {
+                    *o += g * v;
+                }
+            }
+        }
+        Ok(())
+    })
+}
+
+#[inline]
+fn soft_sign(t: f32, eps: f32) -> f32 {
+    if eps > 0.0 {
+        t / (t * t + eps * eps).sqrt()
+    } else {
+        t.signum() * f32::from(t != 0.0)
+    }
+}
+
+/// Bilateral-TV deblurring by steepest descent (Farsiu et al. 2004, eq. 22 with the
+/// shift-and-add image):
+///
+/// `x <- x - beta [H^T A sign(H x - z) + lambda sum_{l,m} alpha^(|l|+|m|)
+///        (I - S_x^-l S_y^-m) sign(x - S_x^l S_y^m x)]`
+///
+/// `z` is the shift-and-add image `(h, w, c)` (finite everywhere: fill holes first),
+/// `a` `(h, w)` the data weights (0 for holes, which the regulariser then fills),
+/// `H` a Gaussian of `psf_sigma` (symmetric: `H^T = H`). `x` holds the starting image
+/// on entry (usually `z`) and the result on return.
+///
+/// # Errors
+/// [`Error::InvalidArgument`] naming the argument whose size or value is unusable.
+#[allow(clippy::too_many_arguments)]
+pub fn btv_deblur(
+    z: &[f32],
+    a: &[f32],
+    h: usize,
+    w: usize,
+    c: usize,
+    params: &BtvParams,
+    x: &mut [f32],
+) -> Result<()> {
+    if h == 0 || w == 0 || !(1..=MAX_CHANNELS).contains(&c) {
+        return Err(Error::invalid_argument(
+            "z",
+            format!("expected a non-empty (H, W, C) image with C <= {MAX_CHANNELS}"),
+        ));
+    }
+    let n = mul("z", &[h, w, c])?;
+    check_len("z", z.len(), n, "(H, W, C)")?;
+    check_len("a", a.len(), h * w, "(H, W)")?;
+    check_len("x", x.len(), n, "(H, W, C)")?;
+    let p = &params;
+    let bad = |name: &str, why: &str| Err(Error::invalid_argument(name, why.to_owned()));
+    if !(p.psf_sigma >= 0.0 && p.psf_sigma <= 16.0) {
+        return bad("psf_sigma", "must be in [0, 16]");
+    }
+    if !(p.lambda >= 0.0 && p.lambda.is_finite()) {
+        return bad("lambda", "must be finite and >= 0");
+    }
+    if !(p.alpha > 0.0 && p.alpha <= 1.0) {
+        return bad("alpha", "must be in (0, 1]");
+    }
+    if p.window > 8 {
+        return bad("window", "must be at most 8");
+    }
+    if !(p.step > 0.0 && p.step.is_finite()) {
+        return bad("step", "must be finite and > 0");
+    }
+    if !(p.eps >= 0.0 && p.eps.is_finite()) {
+        return bad("eps", "must be finite and >= 0");
+    }
+    let taps = gaussian_taps(p.psf_sigma);
+    let row_len = w * c;
+    let mut hx = vec![0f32; n];
+    let mut tmp = vec![0f32; n];
+    let mut d = vec![0f32; n];
+    let win = p.window as i64;
+    let shifts: Vec<(i64, i64, f32)> = (-win..=win)
+        .flat_map(|l| (-win..=win).map(move |m| (l, m)))
+        .filter(|&(l, m)| l != 0 || m != 0)
+        .map(|(l, m)| (l, m, p.alpha.powi((l.abs() + m.abs()) as i32)))
+        .collect();
+    for _ in 0..p.iterations {
+        blur(x, &mut tmp, &mut hx, h, w, c, &taps)?;
+        // d = A sign(Hx - z)
+        {
+            let hx_ro: &[f32] = &hx;
+            parallel::for_each_row_chunk(&mut d, row_len, |first, rows| {
+                for (j, out) in rows.chunks_exact_mut(row_len).enumerate() {
+                    let y = first + j;
+                    for xx in 0..w {
+                        let aw = a[y * w + xx];
+                        for ch in 0..c {
+                            let i = (y * w + xx) * c + ch;
+                            out[xx * c + ch] = aw * soft_sign(hx_ro[i] - z[i], p.eps);
+                        }
+                    }
+                }
+                Ok(())
+            })?;
+        }
+        // hx <- H^T d (hx is free again)
+        blur(&d, &mut tmp, &mut hx, h, w, c, &taps)?;
+        // d <- x - beta (H^T d + lambda * BTV gradient), row by row and shift by shift
+        // (contiguous spans: vectorised).
+        {
+            let xr: &[f32] = x;
+            let g: &[f32] = &hx;
+            parallel::for_each_row_chunk(&mut d, row_len, |first, rows| {
+                let mut reg = vec![0f32; row_len];
+                for (j, out) in rows.chunks_exact_mut(row_len).enumerate() {
+                    let y = first + j;
+                    let xrow = &xr[y * row_len..(y + 1) * row_len];
+                    reg.fill(0.0);
+                    for &(l, m, wt) in &shifts {
+                        let yy = y as i64 + m;
+                        if yy < 0 || yy >= h as i64 {
+                            continue;
+                        }
+                        let srow = &xr[yy as usize * row_len..(yy as usize + 1) * row_len];
+                        // Pixels xx with xx + l inside the row.
+                        let lo = (-l).max(0) as usize;
+                        let hi = (w as i64 - l.max(0)) as usize;
+                        if lo >= hi {
+                            continue;
+                        }
+                        let a = &xrow[lo * c..hi * c];
+                        let b =
+                            &srow[((lo as i64 + l) as usize) * c..((hi as i64 + l) as usize) * c];
+                        for ((o, &va), &vb) in reg[lo * c..hi * c].iter_mut().zip(a).zip(b) {
+                            *o += wt * soft_sign(va - vb, p.eps);
+                        }
+                    }
+                    let grow = &g[y * row_len..(y + 1) * row_len];
+                    let k = 2.0 * p.lambda;
+                    for (((o, &v), &gv), &rv) in out.iter_mut().zip(xrow).zip(grow).zip(&reg) {
+                        *o = v - p.step * (gv + k * rv);
+                    }
+                }
+                Ok(())
+            })?;
+        }
+        x.copy_from_slice(&d);
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn invert_affine_map() {
+        // w(u, v) = (2 + 1.1 u + 0.1 v, 1 + 0.05 u + 0.9 v) on a 12 x 10 grid.
+        let (h, w) = (10, 12);
+        let mut warp = vec![0f32; h * w * 2];
+        for v in 0..h {
+            for u in 0..w {
+                warp[(v * w + u) * 2] = 2.0 + 1.1 * u as f32 + 0.1 * v as f32;
+                warp[(v * w + u) * 2 + 1] = 1.0 + 0.05 * u as f32 + 0.9 * v as f32;
+            }
+        }
+        let (ch, cw) = (12, 16);
+        let mut out = vec![0f32; ch * cw * 2];
+        invert_map(&warp, None, h, w, ch, cw, &mut out).unwrap();
+        let mut n = 0;
+        for y in 0..ch {
+            for x in 0..cw {
+                let (u, v) = (out[(y * cw + x) * 2], out[(y * cw + x) * 2 + 1]);
+                if u.is_finite() {
+                    n += 1;
+                    let fx = 2.0 + 1.1 * u + 0.1 * v;
+                    let fy = 1.0 + 0.05 * u + 0.9 * v;
+                    assert!((fx - x as f32).abs() < 1e-4 && (fy - y as f32).abs() < 1e-4);
+                }
+            }
+        }
+        assert!(n > 80, "{n}");
+    }
+
+    #[test]
+    fn nearest_splat_counts() {
+        let pos = [0.0f32, 0.0, 0.26, 0.0, f32::NAN, 0.0];
+        let val = [1.0f32, 3.0, 5.0];
+        let mut sum = vec![0f32; 4 * 4];
+        let mut ws = vec![0f32; 4 * 4];
+        let p = SplatParams {
+            factor: 2.0,
+            sigma: 0.0,
+            radius: 0,
+            iterations: 0,
+            huber: 0.0,
+            reject: 0.0,
+        };
+        shift_and_add(&pos, &val, None, 1, 4, 4, &p, &mut sum, &mut ws).unwrap();
+        // x = 0 -> X = 0.5 -> rounds to 1; x = 0.26 -> X = 1.02 -> 1.
+        assert_eq!(ws[4 + 1], 2.0);
+        assert_eq!(sum[4 + 1], 4.0);
+        assert_eq!(ws.iter().sum::<f32>(), 2.0);
+    }
+}
