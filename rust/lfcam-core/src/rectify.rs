@@ -406,6 +406,22 @@ pub fn rectify<T: RawSample>(
     interp: Interp,
     out: &mut [f32],
 ) -> Result<()> {
+    rectify_with(raw, gains, crops, maps, views, interp, out, true)
+}
+
+/// [`rectify`], with `simd = false` forcing the baseline build of the loops (see
+/// [`crate::simd`]).
+#[allow(clippy::too_many_arguments)]
+fn rectify_with<T: RawSample>(
+    raw: ImageView<'_, T>,
+    gains: ImageView<'_, f32>,
+    crops: &[[i64; 4]],
+    maps: ViewMaps<'_>,
+    views: &[usize],
+    interp: Interp,
+    out: &mut [f32],
+    simd: bool,
+) -> Result<()> {
     let checked = check(&raw, &gains, crops, &maps, views)?;
     let expected: usize = checked.shape.iter().product();
     if out.len() != expected {
@@ -424,6 +440,7 @@ pub fn rectify<T: RawSample>(
         crops: &checked.crops,
         maps,
         views,
+        simd,
     };
     match (raw.channels(), gains.channels()) {
         (1, 1) => job.run::<1, 1>(interp, out),
@@ -536,6 +553,8 @@ struct Job<'a, T> {
     crops: &'a [Crop],
     maps: ViewMaps<'a>,
     views: &'a [usize],
+    /// Whether to run the AVX2 build of the loops if the CPU has AVX2.
+    simd: bool,
 }
 
 impl<T: RawSample> Job<'_, T> {
@@ -569,12 +588,44 @@ impl<T: RawSample> Job<'_, T> {
         })
     }
 
+    /// [`Self::segment_impl`], compiled for AVX2 if the CPU has it (see
+    /// [`crate::simd`]), else for the baseline.
+    fn segment<const C: usize, const G: usize, S: Sampler>(
+        &self,
+        view: usize,
+        v0: usize,
+        out: &mut [f32],
+        band: &mut Vec<f32>,
+    ) -> Result<()> {
+        #[cfg(target_arch = "x86_64")]
+        if self.simd && crate::simd::has_avx2() {
+            // SAFETY: `segment_avx2` needs only AVX2, which `has_avx2` found on this CPU.
+            #[allow(unsafe_code)]
+            let result = unsafe { self.segment_avx2::<C, G, S>(view, v0, out, band) };
+            return result;
+        }
+        self.segment_impl::<C, G, S>(view, v0, out, band)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    fn segment_avx2<const C: usize, const G: usize, S: Sampler>(
+        &self,
+        view: usize,
+        v0: usize,
+        out: &mut [f32],
+        band: &mut Vec<f32>,
+    ) -> Result<()> {
+        self.segment_impl::<C, G, S>(view, v0, out, band)
+    }
+
     /// Rows `v0..` of view `view` into `out` (whole rows). Estimates the bounding box
     /// of the footprints, computes the gained raw pixels of that band once into `band`
     /// and samples them, reading the raw frame directly for the footprints the band
     /// misses; reads the raw frame for every tap when the band would be much larger
     /// than the work it saves.
-    fn segment<const C: usize, const G: usize, S: Sampler>(
+    #[inline(always)]
+    fn segment_impl<const C: usize, const G: usize, S: Sampler>(
         &self,
         view: usize,
         v0: usize,
@@ -632,6 +683,7 @@ impl<T: RawSample> Job<'_, T> {
     /// fourth kept position within `[-1, w] x [-1, h]` of the crop (a superset of
     /// those with a footprint inside) on every [`EXTENT_ROW_STEP`]-th row and the last
     /// one; `count` scales the positions seen to all. `any_kept` is exact.
+    #[inline(always)]
     fn extent(&self, view: usize, v0: usize, n_rows: usize, crop: &Crop) -> Result<Extent> {
         let mut any_kept = false;
         let mut e = Extent {
@@ -711,6 +763,7 @@ impl<T: RawSample> Job<'_, T> {
 
     /// Row `v` of view `view`: its positions, and their mask in groups of [`GROUP`]
     /// (all 1 without masks).
+    #[inline(always)]
     fn row_inputs(
         &self,
         view: usize,
@@ -732,6 +785,7 @@ impl<T: RawSample> Job<'_, T> {
     /// is *tame*: each pixel NaN in all its channels or in none, and every value NaN or
     /// below [`TAME`] in magnitude. Bilinear interpolation of a tame band is NaN in all
     /// channels or in none (an infinity could make one channel NaN: `inf - inf`).
+    #[inline(always)]
     fn fill_band<const C: usize, const G: usize>(
         &self,
         crop: &Crop,
@@ -784,6 +838,7 @@ impl<T: RawSample> Job<'_, T> {
     /// The one sampling loop: every output pixel of rows `v0..` of view `view` is
     /// written once, from taps read through `taps`, or through `fallback` for the
     /// footprints `taps` does not hold.
+    #[inline(always)]
     fn sample_rows<const C: usize, S: Sampler, P: Taps, Q: Taps>(
         &self,
         taps: &P,
@@ -835,6 +890,7 @@ impl<T: RawSample> Job<'_, T> {
     /// is estimated) are sampled from `fallback` afterwards. Without `CHECK_NAN`, the
     /// band must be tame (see [`Self::fill_band`]): the result is then NaN in all
     /// channels or in none without a test.
+    #[inline(always)]
     fn sample_rows_bilinear<const C: usize, const CHECK_NAN: bool, Q: Taps>(
         &self,
         band: &Packed<'_, C>,
@@ -1102,6 +1158,75 @@ mod tests {
             nan_where(run(&raw, &inf_gain, 1)),
             expected(true, false, false)
         );
+    }
+
+    #[test]
+    fn avx2_and_baseline_builds_agree() {
+        // 2x2 views of 70x50 from a 150x110 RGB u16 frame, smooth warps with NaN
+        // holes, a mask, a few zero gains (per channel and per pixel).
+        let (fw, fh, vw, vh, rw, rh) = (150usize, 110usize, 70usize, 50usize, 90usize, 60usize);
+        let raw: Vec<u16> = (0..fw * fh * 3)
+            .map(|i| (i * 7919 % 65_536) as u16)
+            .collect();
+        let mut gains: Vec<f32> = (0..fw * fh * 3)
+            .map(|i| 0.5 + (i % 13) as f32 / 13.0)
+            .collect();
+        for i in (0..gains.len()).step_by(397) {
+            gains[i] = 0.0;
+        }
+        let crops: Vec<[i64; 4]> = (0..4)
+            .map(|i| [5 + 72 * (i % 2), 4 + 52 * (i / 2), vw as i64, vh as i64])
+            .collect();
+        let mut warps = vec![0f32; 4 * rh * rw * 2];
+        let mut masks = vec![1u8; 4 * rh * rw];
+        for i in 0..4 {
+            for v in 0..rh {
+                for u in 0..rw {
+                    let k = (i * rh + v) * rw + u;
+                    let x = u as f32 * 0.8 - 3.0 + (v as f32 * 0.1).sin() + i as f32;
+                    let y = v as f32 * 0.85 - 2.0 + (u as f32 * 0.07).cos();
+                    warps[2 * k] = if (u + v) % 37 == 0 { f32::NAN } else { x };
+                    warps[2 * k + 1] = y;
+                    masks[k] = u8::from((u * 3 + v) % 41 != 0);
+                }
+            }
+        }
+        let raw_v = ImageView::new(&raw, fh, fw, 3).unwrap();
+        for g in [1usize, 3] {
+            let gains_g: Vec<f32> = gains
+                .iter()
+                .step_by(4 - g)
+                .copied()
+                .take(fw * fh * g)
+                .collect();
+            let gains_v = ImageView::new(&gains_g, fh, fw, g).unwrap();
+            for masks in [None, Some(&masks[..])] {
+                let maps = ViewMaps::new(&warps, masks, 4, rh, rw).unwrap();
+                for interp in Interp::ALL {
+                    let results = [true, false].map(|simd| {
+                        let mut out = vec![0f32; 4 * rh * rw * 3];
+                        rectify_with(
+                            raw_v,
+                            gains_v,
+                            &crops,
+                            maps,
+                            &[0, 1, 2, 3],
+                            interp,
+                            &mut out,
+                            simd,
+                        )
+                        .unwrap();
+                        out
+                    });
+                    let [a, b] = &results;
+                    assert!(
+                        a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits()),
+                        "{interp:?}, {g} gain channels"
+                    );
+                    assert!(a.iter().filter(|v| v.is_finite()).count() > a.len() / 2);
+                }
+            }
+        }
     }
 
     #[test]
