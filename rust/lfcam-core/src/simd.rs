@@ -10,9 +10,11 @@
 //! (Rust never contracts `a * b + c` into an FMA, and AVX2 does not change IEEE
 //! arithmetic); tests compare both paths.
 //!
-//! This is the crate's only `unsafe`: calling a `#[target_feature]` function is unsafe
-//! because running AVX2 instructions on a CPU without them is undefined behaviour;
-//! [`has_avx2`] checks the CPU first (std's cached CPUID query).
+//! The crate's only `unsafe` is this pattern: calling a `#[target_feature]` function is
+//! unsafe because running AVX2 instructions on a CPU without them is undefined
+//! behaviour; [`has_avx2`] checks the CPU first (std's cached CPUID query). It is used
+//! through the macro (triangulate) and written out once in `rectify::Job::segment`,
+//! whose generic parameters the macro does not take.
 
 /// Whether this CPU runs AVX2 code (`false` off x86-64). `LFCAM_SIMD=portable` in the
 /// environment (read once) forces the portable path, for testing and comparison.
