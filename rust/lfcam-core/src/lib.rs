@@ -5,7 +5,8 @@
 //! one place, [`parallel`]. Nothing here knows about Python: the bindings live in the
 //! `lfcam-py` crate.
 
-#![forbid(unsafe_code)]
+// One audited exception, in `simd`: calling AVX2 code after checking the CPU.
+#![deny(unsafe_code)]
 // Kernels must not panic on user data: no unchecked indexing outside tests.
 #![warn(clippy::indexing_slicing)]
 
@@ -16,6 +17,7 @@ pub mod image;
 pub mod parallel;
 pub mod rectify;
 pub mod remap;
+pub mod simd;
 pub mod stats;
 pub mod superres;
 pub mod triangulate;

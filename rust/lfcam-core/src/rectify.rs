@@ -21,8 +21,12 @@
 //! interpolation needs no test for them), and interpolates from it; a footprint the
 //! estimate missed is read from the raw frame directly, and so is every footprint
 //! when the band would cost more than it saves (warps that jump around the crop).
-//! Nothing is precomputed for the whole frame, and every output value is written
-//! once.
+//! Bilinear sampling from a band has its own loop (`Job::sample_rows_bilinear`):
+//! per group of positions, offsets and fractions first (branch-free, vectorised),
+//! positions without a sample pointed at NaN padding, then the interpolation; when
+//! the band is *tame* (each pixel NaN in all channels or none, no huge values) the
+//! result needs no NaN test. Nothing is precomputed for the whole frame, and every
+//! output value is written once.
 
 use std::str::FromStr;
 
@@ -31,7 +35,7 @@ use crate::image::ImageView;
 use crate::parallel;
 use crate::remap::{
     Bicubic, Bilinear, BilinearQ32, Lanes, MAX_CHANNELS, Packed, Sampler, Taps, any_nan, first,
-    four,
+    four, last, lerp_lanes,
 };
 
 /// How [`rectify`] interpolates the raw frame.
@@ -106,12 +110,15 @@ impl FromStr for Interp {
 pub trait RawSample: Copy + Default + Send + Sync + 'static {
     /// The factor that maps the type's full range to `[0, 1]`.
     const SCALE: f32;
+    /// Whether the type is an integer (its values are finite).
+    const INTEGER: bool;
     /// The value as f32, unscaled.
     fn to_f32(self) -> f32;
 }
 
 impl RawSample for u8 {
     const SCALE: f32 = 1.0 / 255.0;
+    const INTEGER: bool = true;
     #[inline(always)]
     fn to_f32(self) -> f32 {
         f32::from(self)
@@ -120,6 +127,7 @@ impl RawSample for u8 {
 
 impl RawSample for u16 {
     const SCALE: f32 = 1.0 / 65535.0;
+    const INTEGER: bool = true;
     #[inline(always)]
     fn to_f32(self) -> f32 {
         f32::from(self)
@@ -128,6 +136,7 @@ impl RawSample for u16 {
 
 impl RawSample for f32 {
     const SCALE: f32 = 1.0;
+    const INTEGER: bool = false;
     #[inline(always)]
     fn to_f32(self) -> f32 {
         self
@@ -397,6 +406,22 @@ pub fn rectify<T: RawSample>(
     interp: Interp,
     out: &mut [f32],
 ) -> Result<()> {
+    rectify_with(raw, gains, crops, maps, views, interp, out, true)
+}
+
+/// [`rectify`], with `simd = false` forcing the baseline build of the loops (see
+/// [`crate::simd`]).
+#[allow(clippy::too_many_arguments)]
+fn rectify_with<T: RawSample>(
+    raw: ImageView<'_, T>,
+    gains: ImageView<'_, f32>,
+    crops: &[[i64; 4]],
+    maps: ViewMaps<'_>,
+    views: &[usize],
+    interp: Interp,
+    out: &mut [f32],
+    simd: bool,
+) -> Result<()> {
     let checked = check(&raw, &gains, crops, &maps, views)?;
     let expected: usize = checked.shape.iter().product();
     if out.len() != expected {
@@ -415,6 +440,7 @@ pub fn rectify<T: RawSample>(
         crops: &checked.crops,
         maps,
         views,
+        simd,
     };
     match (raw.channels(), gains.channels()) {
         (1, 1) => job.run::<1, 1>(interp, out),
@@ -492,6 +518,12 @@ const MIN_TASK_ROWS: usize = 32;
 const BAND_PER_POSITION: usize = 4;
 const BAND_SLACK: usize = 4096;
 
+/// [`Job::extent`] reads the positions of every this many rows (and the last): the
+/// warps are smooth, and a footprint the estimate misses is still sampled, from the
+/// raw frame. Reading every row cost about 6% of the whole (benchmarks/run.py, full
+/// size).
+const EXTENT_ROW_STEP: usize = 4;
+
 /// Positions handled together where masks allow skipping: 16 mask bytes are one
 /// `u128` comparison.
 const GROUP: usize = 16;
@@ -521,6 +553,8 @@ struct Job<'a, T> {
     crops: &'a [Crop],
     maps: ViewMaps<'a>,
     views: &'a [usize],
+    /// Whether to run the AVX2 build of the loops if the CPU has AVX2.
+    simd: bool,
 }
 
 impl<T: RawSample> Job<'_, T> {
@@ -554,12 +588,44 @@ impl<T: RawSample> Job<'_, T> {
         })
     }
 
+    /// [`Self::segment_impl`], compiled for AVX2 if the CPU has it (see
+    /// [`crate::simd`]), else for the baseline.
+    fn segment<const C: usize, const G: usize, S: Sampler>(
+        &self,
+        view: usize,
+        v0: usize,
+        out: &mut [f32],
+        band: &mut Vec<f32>,
+    ) -> Result<()> {
+        #[cfg(target_arch = "x86_64")]
+        if self.simd && crate::simd::has_avx2() {
+            // SAFETY: `segment_avx2` needs only AVX2, which `has_avx2` found on this CPU.
+            #[allow(unsafe_code)]
+            let result = unsafe { self.segment_avx2::<C, G, S>(view, v0, out, band) };
+            return result;
+        }
+        self.segment_impl::<C, G, S>(view, v0, out, band)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    fn segment_avx2<const C: usize, const G: usize, S: Sampler>(
+        &self,
+        view: usize,
+        v0: usize,
+        out: &mut [f32],
+        band: &mut Vec<f32>,
+    ) -> Result<()> {
+        self.segment_impl::<C, G, S>(view, v0, out, band)
+    }
+
     /// Rows `v0..` of view `view` into `out` (whole rows). Estimates the bounding box
     /// of the footprints, computes the gained raw pixels of that band once into `band`
     /// and samples them, reading the raw frame directly for the footprints the band
     /// misses; reads the raw frame for every tap when the band would be much larger
     /// than the work it saves.
-    fn segment<const C: usize, const G: usize, S: Sampler>(
+    #[inline(always)]
+    fn segment_impl<const C: usize, const G: usize, S: Sampler>(
         &self,
         view: usize,
         v0: usize,
@@ -591,7 +657,7 @@ impl<T: RawSample> Job<'_, T> {
             (Some((col0, bw)), Some((row0, bh)))
                 if bw * bh <= BAND_PER_POSITION * extent.count + BAND_SLACK =>
             {
-                self.fill_band::<C, G>(&crop, (col0, bw), (row0, bh), band)?;
+                let tame = self.fill_band::<C, G>(&crop, (col0, bw), (row0, bh), band)?;
                 let taps = Packed::<C> {
                     data: band,
                     stride: bw * C,
@@ -600,7 +666,13 @@ impl<T: RawSample> Job<'_, T> {
                     rows: bh,
                     cols: bw,
                 };
-                self.sample_rows::<C, S, _, _>(&taps, Some(&direct), view, v0, &crop, out)
+                if S::IS_BILINEAR && tame {
+                    self.sample_rows_bilinear::<C, false, _>(&taps, &direct, view, v0, &crop, out)
+                } else if S::IS_BILINEAR {
+                    self.sample_rows_bilinear::<C, true, _>(&taps, &direct, view, v0, &crop, out)
+                } else {
+                    self.sample_rows::<C, S, _, _>(&taps, Some(&direct), view, v0, &crop, out)
+                }
             }
             _ => self
                 .sample_rows::<C, S, _, Direct<'_, T, C, G>>(&direct, None, view, v0, &crop, out),
@@ -609,7 +681,9 @@ impl<T: RawSample> Job<'_, T> {
 
     /// An estimate of the [`Extent`] of rows `v0..v0 + n_rows` of view `view`: every
     /// fourth kept position within `[-1, w] x [-1, h]` of the crop (a superset of
-    /// those with a footprint inside); `count` is four times the positions seen.
+    /// those with a footprint inside) on every [`EXTENT_ROW_STEP`]-th row and the last
+    /// one; `count` scales the positions seen to all. `any_kept` is exact.
+    #[inline(always)]
     fn extent(&self, view: usize, v0: usize, n_rows: usize, crop: &Crop) -> Result<Extent> {
         let mut any_kept = false;
         let mut e = Extent {
@@ -630,10 +704,20 @@ impl<T: RawSample> Job<'_, T> {
                     if y < e.y.0 { y } else { e.y.0 },
                     if y > e.y.1 { y } else { e.y.1 },
                 );
-                e.count += 4;
+                e.count += 4 * EXTENT_ROW_STEP;
             }
         };
         for v in v0..v0 + n_rows {
+            if !(v - v0).is_multiple_of(EXTENT_ROW_STEP) && v + 1 != v0 + n_rows {
+                // Not sampled: only whether a position is kept.
+                if !any_kept {
+                    any_kept = match self.maps.mask_row(view, v).ok_or_else(|| internal(v))? {
+                        None => true,
+                        Some(mask) => mask.iter().any(|&k| k != 0),
+                    };
+                }
+                continue;
+            }
             let points = self
                 .maps
                 .warp_row(view, v)
@@ -679,6 +763,7 @@ impl<T: RawSample> Job<'_, T> {
 
     /// Row `v` of view `view`: its positions, and their mask in groups of [`GROUP`]
     /// (all 1 without masks).
+    #[inline(always)]
     fn row_inputs(
         &self,
         view: usize,
@@ -695,17 +780,22 @@ impl<T: RawSample> Job<'_, T> {
     }
 
     /// `band` := the gained raw pixels of crop columns `col0 .. col0 + bw`, rows
-    /// `row0 .. row0 + bh`, `C` channels each, row after row (plus padding so that
-    /// two pixels' lanes can be read at the last pixel).
+    /// `row0 .. row0 + bh`, `C` channels each, row after row (plus 8 NaN values, so
+    /// that two pixels' lanes can be read at the last pixel). Returns whether the band
+    /// is *tame*: each pixel NaN in all its channels or in none, and every value NaN or
+    /// below [`TAME`] in magnitude. Bilinear interpolation of a tame band is NaN in all
+    /// channels or in none (an infinity could make one channel NaN: `inf - inf`).
+    #[inline(always)]
     fn fill_band<const C: usize, const G: usize>(
         &self,
         crop: &Crop,
         (col0, bw): (usize, usize),
         (row0, bh): (usize, usize),
         band: &mut Vec<f32>,
-    ) -> Result<()> {
+    ) -> Result<bool> {
         band.clear();
         band.reserve(bh * bw * C + 8);
+        let mut wild = false;
         let x = crop.x0 + col0;
         for y in crop.y0 + row0..crop.y0 + row0 + bh {
             let bad = || internal(y);
@@ -716,6 +806,7 @@ impl<T: RawSample> Job<'_, T> {
                 let v = (r.to_f32() * T::SCALE) * g;
                 if g == 0.0 { f32::NAN } else { v }
             };
+            let start = band.len();
             if G == C {
                 band.extend(raw.iter().zip(gains).map(|(&r, &g)| gained(r, g)));
             } else {
@@ -724,14 +815,30 @@ impl<T: RawSample> Job<'_, T> {
                     band.extend(r.iter().map(|&r| gained(r, g)));
                 }
             }
+            let row = band.get(start..).ok_or_else(bad)?;
+            // `|` rather than `||`: branch-free, so that the loops vectorise.
+            wild |= row.iter().fold(false, |w, &v| w | (v.abs() >= TAME));
+            // With one gain for all channels of an integer raw, a pixel is NaN in all
+            // channels (gain 0 or NaN) or in none, but for `0 * inf`, which `wild`
+            // catches.
+            if C > 1 && (G > 1 || !T::INTEGER) {
+                let (pixels, _) = row.as_chunks::<C>();
+                wild |= pixels.iter().fold(false, |w, p| {
+                    w | p.windows(2).fold(false, |m, v| {
+                        m | (v.first().is_some_and(|a| a.is_nan())
+                            != v.last().is_some_and(|b| b.is_nan()))
+                    })
+                });
+            }
         }
         band.extend([f32::NAN; 8]);
-        Ok(())
+        Ok(!wild)
     }
 
     /// The one sampling loop: every output pixel of rows `v0..` of view `view` is
     /// written once, from taps read through `taps`, or through `fallback` for the
     /// footprints `taps` does not hold.
+    #[inline(always)]
     fn sample_rows<const C: usize, S: Sampler, P: Taps, Q: Taps>(
         &self,
         taps: &P,
@@ -752,7 +859,7 @@ impl<T: RawSample> Job<'_, T> {
                     .first_chunk::<GROUP>()
                     .is_some_and(|k| u128::from_ne_bytes(*k) == 0)
                 {
-                    pixels.fill([f32::NAN; C]);
+                    pixels.as_flattened_mut().fill(f32::NAN);
                     continue;
                 }
                 for ((px, &[x, y]), &keep) in pixels.iter_mut().zip(points).zip(keep) {
@@ -771,6 +878,176 @@ impl<T: RawSample> Job<'_, T> {
         }
         Ok(())
     }
+}
+
+impl<T: RawSample> Job<'_, T> {
+    /// [`Self::sample_rows`] for [`Bilinear`] from a band, the values bit for bit, in
+    /// two steps per group of [`GROUP`] positions: first, branch-free and vectorisable,
+    /// each position's band offset, steps to its right and lower neighbours and
+    /// fractions, with the positions that have no sample pointed at the band's NaN
+    /// padding (so they come out NaN with no test); then the interpolation, one pixel
+    /// after the other. Footprints inside the crop but outside the band (rare: the band
+    /// is estimated) are sampled from `fallback` afterwards. Without `CHECK_NAN`, the
+    /// band must be tame (see [`Self::fill_band`]): the result is then NaN in all
+    /// channels or in none without a test.
+    #[inline(always)]
+    fn sample_rows_bilinear<const C: usize, const CHECK_NAN: bool, Q: Taps>(
+        &self,
+        band: &Packed<'_, C>,
+        fallback: &Q,
+        view: usize,
+        v0: usize,
+        crop: &Crop,
+        out: &mut [f32],
+    ) -> Result<()> {
+        let data = band.data;
+        // `fill_band` pads the band with 8 NaN values.
+        let nan_at = data.len().checked_sub(8).ok_or_else(|| internal(v0))?;
+        let as_i32 = |v: usize| i32::try_from(v).ok();
+        let (Some(nan_at), Some(stride), Some(row0), Some(col0), Some(rows), Some(cols)) = (
+            as_i32(nan_at),
+            as_i32(band.stride),
+            as_i32(band.row0),
+            as_i32(band.col0),
+            as_i32(band.rows),
+            as_i32(band.cols),
+        ) else {
+            // A band beyond i32 offsets: the general loop.
+            return self.sample_rows::<C, Bilinear, _, _>(
+                band,
+                Some(fallback),
+                view,
+                v0,
+                crop,
+                out,
+            );
+        };
+        if crop.w > FLOOR_LIMIT || crop.h > FLOOR_LIMIT {
+            return self.sample_rows::<C, Bilinear, _, _>(
+                band,
+                Some(fallback),
+                view,
+                v0,
+                crop,
+                out,
+            );
+        }
+        let (wl, hl) = (last(crop.w), last(crop.h));
+        let row_len = self.maps.width() * C;
+        for (k, out_row) in out.chunks_exact_mut(row_len).enumerate() {
+            let (points, keep) = self.row_inputs(view, v0 + k)?;
+            let (pixels, _) = out_row.as_chunks_mut::<C>();
+            let groups = pixels.chunks_mut(GROUP).zip(points.chunks(GROUP)).zip(keep);
+            for ((pixels, points), keep) in groups {
+                // Masks come in long runs: a masked group is one fill.
+                if keep
+                    .first_chunk::<GROUP>()
+                    .is_some_and(|k| u128::from_ne_bytes(*k) == 0)
+                {
+                    pixels.as_flattened_mut().fill(f32::NAN);
+                    continue;
+                }
+                // The group padded to GROUP positions (a row's last group may be short).
+                let mut pts = [[f32::NAN; 2]; GROUP];
+                let mut kept = [0u8; GROUP];
+                pts.iter_mut().zip(points).for_each(|(d, &s)| *d = s);
+                kept.iter_mut().zip(keep).for_each(|(d, &s)| *d = s);
+                let mut off = [0i32; GROUP];
+                let mut down = [0i32; GROUP];
+                let mut right = [false; GROUP];
+                let mut tx = [0f32; GROUP];
+                let mut ty = [0f32; GROUP];
+                let mut slow = [false; GROUP];
+                let lanes = off
+                    .iter_mut()
+                    .zip(down.iter_mut())
+                    .zip(right.iter_mut())
+                    .zip(tx.iter_mut().zip(ty.iter_mut()))
+                    .zip(slow.iter_mut().zip(pts.iter().zip(&kept)));
+                for ((((off, down), right), (tx, ty)), (slow, (&[x, y], &k))) in lanes {
+                    // As `Linear::at` on both axes (NaN fails every comparison).
+                    let inside = (k != 0) & (x >= 0.0) & (x <= wl) & (y >= 0.0) & (y <= hl);
+                    let (xs, ys) = if inside { (x, y) } else { (0.0, 0.0) };
+                    let ((ix, fx), (iy, fy)) = (floor_fract(xs), floor_fract(ys));
+                    let (r, d) = (fx > 0.0, fy > 0.0);
+                    let (c, row) = (ix.wrapping_sub(col0), iy.wrapping_sub(row0));
+                    let in_band = (c >= 0)
+                        & (c.wrapping_add(i32::from(r)) < cols)
+                        & (row >= 0)
+                        & (row.wrapping_add(i32::from(d)) < rows);
+                    let ok = inside & in_band;
+                    *slow = inside & !in_band;
+                    let at = row
+                        .wrapping_mul(stride)
+                        .wrapping_add(c.wrapping_mul(C as i32));
+                    *off = if ok { at } else { nan_at };
+                    *down = if ok & d { stride } else { 0 };
+                    *right = ok & r;
+                    (*tx, *ty) = (fx, fy);
+                }
+                let lanes = off.iter().zip(&down).zip(&right).zip(tx.iter().zip(&ty));
+                for (px, (((&off, &down), &right), (&tx, &ty))) in pixels.iter_mut().zip(lanes) {
+                    // Offsets are in 0..=nan_at, and every pixel start in the band has 8
+                    // values from it (the padding).
+                    let top = off as usize;
+                    let (Some((p00, p01)), Some((p10, p11))) = (
+                        pair8::<C>(data, top, right),
+                        pair8::<C>(data, top + down as usize, right),
+                    ) else {
+                        return Err(internal(v0 + k));
+                    };
+                    let v = lerp_lanes(lerp_lanes(p00, p01, tx), lerp_lanes(p10, p11, tx), ty);
+                    *px = if CHECK_NAN && any_nan(&v, C) {
+                        [f32::NAN; C]
+                    } else {
+                        first::<C>(&v)
+                    };
+                }
+                if slow.iter().any(|&s| s) {
+                    for ((px, &[x, y]), &s) in pixels.iter_mut().zip(&pts).zip(&slow) {
+                        if s {
+                            *px = match Bilinear::sample(fallback, crop.w, crop.h, x, y) {
+                                Some(v) if !any_nan(&v, C) => first::<C>(&v),
+                                _ => [f32::NAN; C],
+                            };
+                        }
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Values at least this large make a band wild (see [`Job::fill_band`]).
+const TAME: f32 = 1e37;
+
+/// Crops up to this many pixels wide and high use [`floor_fract`].
+const FLOOR_LIMIT: usize = 1 << 22;
+
+/// `(floor(x), x - floor(x))` for `0 <= x < 2^22`, exactly as `x as i32` and `x - (x as
+/// i32) as f32`, but with float and integer arithmetic that vectorises (Rust's `as`
+/// saturates, which takes several instructions per value on x86-64): adding `2^23`
+/// rounds to an integer, whose bits hold it.
+#[inline(always)]
+fn floor_fract(x: f32) -> (i32, f32) {
+    const MAGIC: f32 = 8_388_608.0; // 2^23
+    let r = x + MAGIC;
+    let rounded = r - MAGIC;
+    let up = rounded > x;
+    let i = (r.to_bits().wrapping_sub(MAGIC.to_bits()) as i32) - i32::from(up);
+    let floor = if up { rounded - 1.0 } else { rounded };
+    (i, x - floor)
+}
+
+/// The pixel at `start` of `data` and the next one (`C` values on), or itself again
+/// if `!right`, from one read of eight values.
+#[inline(always)]
+fn pair8<const C: usize>(data: &[f32], start: usize, right: bool) -> Option<(Lanes, Lanes)> {
+    let eight = data.get(start..)?.first_chunk::<8>()?;
+    let a = *eight.first_chunk::<4>()?;
+    let b = *eight.get(C..)?.first_chunk::<4>()?;
+    Some((a, if right { b } else { a }))
 }
 
 /// The error of a broken internal invariant (never the caller's fault).
@@ -822,6 +1099,156 @@ mod tests {
         assert!((out[1] - 50.0 * s).abs() < 1e-6, "{out:?}");
         // (1, 1.5) reads raw (2, 3), whose gain is 0.
         assert!(out[2].is_nan() && out[3].is_nan(), "{out:?}");
+    }
+
+    #[test]
+    fn a_nan_in_one_channel_makes_every_channel_nan() {
+        // 2x4 RGB f32 frame; warps sample between pixel columns 0-1 and columns 2-3 of
+        // row 0, and exactly on pixel (1, 3).
+        let run = |raw: &[f32], gains: &[f32], g: usize| {
+            let raw_v = ImageView::new(raw, 2, 4, 3).unwrap();
+            let gains_v = ImageView::new(gains, 2, 4, g).unwrap();
+            let warps = [0.5f32, 0.0, 2.5, 0.0, 3.0, 1.0];
+            let maps = ViewMaps::new(&warps, None, 1, 1, 3).unwrap();
+            let mut out = [0.0f32; 9];
+            let crops = [[0, 0, 4, 2]];
+            rectify(
+                raw_v,
+                gains_v,
+                &crops,
+                maps,
+                &[0],
+                Interp::Bilinear,
+                &mut out,
+            )
+            .unwrap();
+            out
+        };
+        let nan_where = |out: [f32; 9]| out.map(|v| v.is_nan());
+        let raw: Vec<f32> = (0..24).map(|v| v as f32 / 24.0).collect();
+        let ones = vec![1.0f32; 24];
+        let out = run(&raw, &ones, 3);
+        assert!(out.iter().all(|v| v.is_finite()), "{out:?}");
+        // A NaN raw value in one channel, an infinity making `inf - inf`, a zero gain
+        // in one channel: the samples whose footprint holds them are NaN in all three.
+        let mut nan_raw = raw.clone();
+        nan_raw[1] = f32::NAN; // pixel (0, 0), green
+        let mut inf_raw = raw.clone();
+        inf_raw[6] = f32::INFINITY; // pixel (0, 2), red
+        inf_raw[9] = f32::INFINITY; // pixel (0, 3), red
+        let mut zero_gain = ones.clone();
+        zero_gain[23] = 0.0; // pixel (1, 3), blue
+        let expected = |a: bool, b: bool, c: bool| [a, a, a, b, b, b, c, c, c];
+        assert_eq!(
+            nan_where(run(&nan_raw, &ones, 3)),
+            expected(true, false, false)
+        );
+        assert_eq!(
+            nan_where(run(&inf_raw, &ones, 3)),
+            expected(false, true, false)
+        );
+        assert_eq!(
+            nan_where(run(&raw, &zero_gain, 3)),
+            expected(false, false, true)
+        );
+        // One infinite gain: `0 * inf` is NaN in the channel whose raw value is 0.
+        let mut inf_gain = vec![1.0f32; 8];
+        inf_gain[0] = f32::INFINITY;
+        assert_eq!(
+            nan_where(run(&raw, &inf_gain, 1)),
+            expected(true, false, false)
+        );
+    }
+
+    #[test]
+    fn avx2_and_baseline_builds_agree() {
+        // 2x2 views of 70x50 from a 150x110 RGB u16 frame, smooth warps with NaN
+        // holes, a mask, a few zero gains (per channel and per pixel).
+        let (fw, fh, vw, vh, rw, rh) = (150usize, 110usize, 70usize, 50usize, 90usize, 60usize);
+        let raw: Vec<u16> = (0..fw * fh * 3)
+            .map(|i| (i * 7919 % 65_536) as u16)
+            .collect();
+        let mut gains: Vec<f32> = (0..fw * fh * 3)
+            .map(|i| 0.5 + (i % 13) as f32 / 13.0)
+            .collect();
+        for i in (0..gains.len()).step_by(397) {
+            gains[i] = 0.0;
+        }
+        let crops: Vec<[i64; 4]> = (0..4)
+            .map(|i| [5 + 72 * (i % 2), 4 + 52 * (i / 2), vw as i64, vh as i64])
+            .collect();
+        let mut warps = vec![0f32; 4 * rh * rw * 2];
+        let mut masks = vec![1u8; 4 * rh * rw];
+        for i in 0..4 {
+            for v in 0..rh {
+                for u in 0..rw {
+                    let k = (i * rh + v) * rw + u;
+                    let x = u as f32 * 0.8 - 3.0 + (v as f32 * 0.1).sin() + i as f32;
+                    let y = v as f32 * 0.85 - 2.0 + (u as f32 * 0.07).cos();
+                    warps[2 * k] = if (u + v) % 37 == 0 { f32::NAN } else { x };
+                    warps[2 * k + 1] = y;
+                    masks[k] = u8::from((u * 3 + v) % 41 != 0);
+                }
+            }
+        }
+        let raw_v = ImageView::new(&raw, fh, fw, 3).unwrap();
+        for g in [1usize, 3] {
+            let gains_g: Vec<f32> = gains
+                .iter()
+                .step_by(4 - g)
+                .copied()
+                .take(fw * fh * g)
+                .collect();
+            let gains_v = ImageView::new(&gains_g, fh, fw, g).unwrap();
+            for masks in [None, Some(&masks[..])] {
+                let maps = ViewMaps::new(&warps, masks, 4, rh, rw).unwrap();
+                for interp in Interp::ALL {
+                    let results = [true, false].map(|simd| {
+                        let mut out = vec![0f32; 4 * rh * rw * 3];
+                        rectify_with(
+                            raw_v,
+                            gains_v,
+                            &crops,
+                            maps,
+                            &[0, 1, 2, 3],
+                            interp,
+                            &mut out,
+                            simd,
+                        )
+                        .unwrap();
+                        out
+                    });
+                    let [a, b] = &results;
+                    assert!(
+                        a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits()),
+                        "{interp:?}, {g} gain channels"
+                    );
+                    assert!(a.iter().filter(|v| v.is_finite()).count() > a.len() / 2);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn floor_fract_is_truncation() {
+        for x in [
+            0.0f32,
+            0.25,
+            0.5,
+            1.0,
+            1.5,
+            2.5,
+            2.999_999_8,
+            1023.75,
+            4_194_303.5,
+        ] {
+            assert_eq!(floor_fract(x), (x as i32, x - (x as i32) as f32), "{x}");
+        }
+        let mut x = 0.0f32;
+        while x < 70_000.0 {
+            assert_eq!(floor_fract(x), (x as i32, x - (x as i32) as f32), "{x}");
+            x = x * 1.001 + 0.000_37;
+        }
     }
 
     #[test]

@@ -47,7 +47,7 @@ pub const TAB_SIZE: usize = 32;
 
 /// `(n - 1)` as f32: the largest coordinate whose footprint can be inside `n` pixels.
 #[inline(always)]
-fn last(n: usize) -> f32 {
+pub(crate) fn last(n: usize) -> f32 {
     n.saturating_sub(1) as f32
 }
 
@@ -228,6 +228,9 @@ pub(crate) trait Sampler {
     /// AFTER` at most (rounding included), likewise for rows.
     const BEFORE: usize;
     const AFTER: usize;
+    /// Whether this is [`Bilinear`], which [`mod@crate::rectify`] runs through a
+    /// specialised loop computing the same values.
+    const IS_BILINEAR: bool = false;
 
     fn sample<S: Taps>(src: &S, w: usize, h: usize, x: f32, y: f32) -> Option<Lanes>;
 }
@@ -240,6 +243,7 @@ pub(crate) struct Bilinear;
 impl Sampler for Bilinear {
     const BEFORE: usize = 0;
     const AFTER: usize = 1;
+    const IS_BILINEAR: bool = true;
 
     #[inline(always)]
     fn sample<S: Taps>(src: &S, w: usize, h: usize, x: f32, y: f32) -> Option<Lanes> {
