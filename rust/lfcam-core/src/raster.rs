@@ -1,0 +1,506 @@
+//! Z-buffered triangle rasterisation with perspective-correct interpolation: the
+//! renderer of depth meshes (novel views, DESIGN.md section 5).
+//!
+//! # Conventions
+//! - Vertices arrive already projected: `(x, y, z)` with `x` the column and `y` the row
+//!   of the target image in pixels, `z > 0` the depth along the viewing axis (any unit).
+//!   Pixel `(u, v)` is centred at integer coordinates `(u, v)` (DESIGN.md section 2).
+//! - A pixel centre is inside a triangle when all three edge functions are positive, or
+//!   zero on an edge the triangle owns. Edge functions are evaluated exactly on vertex
+//!   positions snapped to 1/[`SUBPIXEL`] px (integer arithmetic), and an edge is owned
+//!   by exactly one of the two triangles sharing it (a top-left-style rule on the edge's
+//!   direction), so a shared edge is never drawn twice and never leaves a crack.
+//! - Colour and depth are interpolated perspective-correctly: barycentric weights
+//!   divided by each vertex's `z`, renormalised. Depth is the interpolated `z` itself
+//!   (`1 / sum(l_k / z_k)`), the nearest one wins (z-buffer).
+//! - Triangles are two-sided (no culling). A triangle is skipped (not an error) if a
+//!   vertex is not finite, has `z <= 0`, or lies farther than [`MAX_COORD`] px from the
+//!   image origin, or if its snapped area is zero.
+//! - Pixels no triangle covers are NaN in the image and the depth, and 0 in the mask.
+//!
+//! # Parallelism
+//! Triangles are binned by rows ([`BIN_ROWS`] rows per bin, a triangle in every bin its
+//! rows touch), then the output rows are split into tasks by [`parallel`]'s policy; a
+//! task draws the triangles of its bins, clipped to its rows, visiting each once.
+
+use rayon::prelude::*;
+
+use crate::error::{Error, Result};
+use crate::parallel;
+
+/// Sub-pixel resolution of vertex positions: 1/256 px.
+pub const SUBPIXEL: i64 = 256;
+
+/// Vertex coordinates beyond this many pixels from the origin make a triangle skipped:
+/// with image sides of at most [`MAX_SIDE`] px, keeps the integer edge functions (sums
+/// of products of coordinate differences in sub-pixel units, below 2^59) inside `i64`.
+pub const MAX_COORD: f32 = 1_048_576.0;
+
+/// Largest image side accepted (pixels), for the same reason as [`MAX_COORD`].
+pub const MAX_SIDE: usize = 1 << 20;
+
+/// Rows per triangle bin: small enough that a task's triangles are found without
+/// scanning others', large enough that few small triangles straddle two bins.
+pub const BIN_ROWS: usize = 8;
+
+/// Triangles set up per serial chunk when finding their row ranges.
+const SETUP_CHUNK: usize = 16 * 1024;
+
+/// A borrowed triangle mesh whose vertices are projected to the target image.
+#[derive(Debug, Clone, Copy)]
+pub struct ProjectedMesh<'a> {
+    /// `(x, y, z)` per vertex: column, row (px) and depth (> 0).
+    pub vertices: &'a [[f32; 3]],
+    /// `channels` values per vertex, vertex after vertex.
+    pub colours: &'a [f32],
+    /// Number of colour channels (>= 1).
+    pub channels: usize,
+    /// Vertex indices of each triangle.
+    pub faces: &'a [[u32; 3]],
+}
+
+/// The outputs of [`rasterize`], `height * width` pixels each.
+#[derive(Debug)]
+pub struct Target<'a> {
+    /// `(H, W, C)` interleaved colour; NaN where nothing was drawn.
+    pub image: &'a mut [f32],
+    /// `(H, W)` depth of the nearest surface; NaN where nothing was drawn.
+    pub depth: &'a mut [f32],
+    /// `(H, W)`: 1 where a triangle was drawn, else 0.
+    pub mask: &'a mut [u8],
+    /// Rows.
+    pub height: usize,
+    /// Columns.
+    pub width: usize,
+}
+
+/// A triangle after setup: snapped vertices (counter-clockwise in the edge-function
+/// sense), their `1/z`, and the pixel rows and columns its bounding box covers.
+#[derive(Debug, Clone, Copy)]
+struct Setup {
+    x: [i64; 3],
+    y: [i64; 3],
+    inv_z: [f64; 3],
+    /// Original vertex indices in the order of `x`, `y`.
+    idx: [usize; 3],
+    rows: (usize, usize),
+    cols: (usize, usize),
+    area: i64,
+}
+
+/// The first integer `>= v / SUBPIXEL`, for `v` in sub-pixel units.
+fn ceil_px(v: i64) -> i64 {
+    v.div_euclid(SUBPIXEL) + i64::from(v.rem_euclid(SUBPIXEL) != 0)
+}
+
+/// Sets up triangle `t`, or `None` if it is skipped (see the module docs) or covers no
+/// pixel centre of a `height x width` image.
+fn setup(mesh: &ProjectedMesh<'_>, t: usize, height: usize, width: usize) -> Option<Setup> {
+    let face = mesh.faces.get(t)?;
+    let mut x = [0i64; 3];
+    let mut y = [0i64; 3];
+    let mut inv_z = [0f64; 3];
+    let mut idx = [0usize; 3];
+    for k in 0..3 {
+        let vi = usize::try_from(*face.get(k)?).ok()?;
+        let v = mesh.vertices.get(vi)?;
+        let [px, py, pz] = *v;
+        if !(px.is_finite() && py.is_finite() && pz.is_finite() && pz > 0.0) {
+            return None;
+        }
+        if px.abs() > MAX_COORD || py.abs() > MAX_COORD {
+            return None;
+        }
+        *x.get_mut(k)? = (f64::from(px) * SUBPIXEL as f64).round() as i64;
+        *y.get_mut(k)? = (f64::from(py) * SUBPIXEL as f64).round() as i64;
+        *inv_z.get_mut(k)? = 1.0 / f64::from(pz);
+        *idx.get_mut(k)? = vi;
+    }
+    let mut area = (x[1] - x[0]) * (y[2] - y[0]) - (y[1] - y[0]) * (x[2] - x[0]);
+    if area == 0 {
+        return None;
+    }
+    if area < 0 {
+        x.swap(1, 2);
+        y.swap(1, 2);
+        inv_z.swap(1, 2);
+        idx.swap(1, 2);
+        area = -area;
+    }
+    let (x_lo, x_hi) = (x[0].min(x[1]).min(x[2]), x[0].max(x[1]).max(x[2]));
+    let (y_lo, y_hi) = (y[0].min(y[1]).min(y[2]), y[0].max(y[1]).max(y[2]));
+    let c0 = ceil_px(x_lo).max(0);
+    let c1 = x_hi
+        .div_euclid(SUBPIXEL)
+        .min(i64::try_from(width).ok()? - 1);
+    let r0 = ceil_px(y_lo).max(0);
+    let r1 = y_hi
+        .div_euclid(SUBPIXEL)
+        .min(i64::try_from(height).ok()? - 1);
+    if c0 > c1 || r0 > r1 {
+        return None;
+    }
+    Some(Setup {
+        x,
+        y,
+        inv_z,
+        idx,
+        rows: (usize::try_from(r0).ok()?, usize::try_from(r1).ok()?),
+        cols: (usize::try_from(c0).ok()?, usize::try_from(c1).ok()?),
+        area,
+    })
+}
+
+/// Whether the edge from `(ax, ay)` to `(bx, by)` owns the pixel centres exactly on it.
+/// For the reversed edge the answer is the opposite, so of two triangles sharing an
+/// edge (traversed in opposite directions once both are counter-clockwise) exactly one
+/// owns it.
+fn owns(ax: i64, ay: i64, bx: i64, by: i64) -> bool {
+    let (dx, dy) = (bx - ax, by - ay);
+    dy < 0 || (dy == 0 && dx > 0)
+}
+
+/// Draws triangle `s` into the rows `first..first + rows` of the task's outputs.
+#[allow(clippy::too_many_arguments)]
+fn draw(
+    s: &Setup,
+    mesh: &ProjectedMesh<'_>,
+    width: usize,
+    first: usize,
+    image: &mut [f32],
+    depth: &mut [f32],
+) {
+    let n_rows = depth.len() / width.max(1);
+    let r0 = s.rows.0.max(first);
+    let r1 = s.rows.1.min(first + n_rows.saturating_sub(1));
+    if n_rows == 0 || r0 > r1 {
+        return;
+    }
+    let ch = mesh.channels;
+    let ([x0, x1, x2], [y0, y1, y2]) = (s.x, s.y);
+    // Edge k is opposite vertex k: from vertex k+1 to vertex k+2.
+    // E(p) = (bx - ax)(py - ay) - (by - ay)(px - ax), p in sub-pixel units; per pixel
+    // step it changes by `step_x` along a row and `step_y` down a column.
+    let edges = [(x1, y1, x2, y2), (x2, y2, x0, y0), (x0, y0, x1, y1)];
+    let step_x = edges.map(|(_, ay, _, by)| -(by - ay) * SUBPIXEL);
+    let step_y = edges.map(|(ax, _, bx, _)| (bx - ax) * SUBPIXEL);
+    let base = edges.map(|(ax, ay, bx, by)| -(bx - ax) * ay + (by - ay) * ax);
+    let bias = edges.map(|(ax, ay, bx, by)| i64::from(owns(ax, ay, bx, by)));
+    let inv_area = 1.0 / s.area as f64;
+    let (c0, c1) = s.cols;
+    let col = |vi: usize, c: usize| -> f64 {
+        mesh.colours
+            .get(vi * ch + c)
+            .map_or(f64::NAN, |v| f64::from(*v))
+    };
+    for r in r0..=r1 {
+        let (ri, ci) = (r as i64, c0 as i64);
+        let [b0, b1, b2] = base;
+        let [sx0, sx1, sx2] = step_x;
+        let [sy0, sy1, sy2] = step_y;
+        let [bias0, bias1, bias2] = bias;
+        let (mut e0, mut e1, mut e2) = (
+            b0 + sx0 * ci + sy0 * ri,
+            b1 + sx1 * ci + sy1 * ri,
+            b2 + sx2 * ci + sy2 * ri,
+        );
+        let row = (r - first) * width;
+        for c in c0..=c1 {
+            if e0 + bias0 > 0 && e1 + bias1 > 0 && e2 + bias2 > 0 {
+                let [iz0, iz1, iz2] = s.inv_z;
+                let w0 = e0 as f64 * inv_area * iz0;
+                let w1 = e1 as f64 * inv_area * iz1;
+                let w2 = e2 as f64 * inv_area * iz2;
+                let sum = w0 + w1 + w2;
+                if sum > 0.0 {
+                    let z = (1.0 / sum) as f32;
+                    let p = row + c;
+                    if let Some(zb) = depth.get_mut(p)
+                        && (z < *zb || zb.is_nan())
+                    {
+                        *zb = z;
+                        let inv = 1.0 / sum;
+                        if let Some(px) = image.get_mut(p * ch..(p + 1) * ch) {
+                            for (cc, out) in px.iter_mut().enumerate() {
+                                let [i0, i1, i2] = s.idx;
+                                let v =
+                                    (w0 * col(i0, cc) + w1 * col(i1, cc) + w2 * col(i2, cc)) * inv;
+                                *out = v as f32;
+                            }
+                        }
+                    }
+                }
+            }
+            e0 += sx0;
+            e1 += sx1;
+            e2 += sx2;
+        }
+    }
+}
+
+/// Renders `mesh` into `target` with a z-buffer (see the module docs for the
+/// conventions). Every output element is written. Runs in lfcam's pool.
+///
+/// # Errors
+/// - [`Error::InvalidArgument`] `"colours"` if `channels == 0` or `colours.len()` is not
+///   `channels` per vertex;
+/// - [`Error::InvalidItem`] `"faces"` for a triangle with a vertex index out of range;
+/// - [`Error::InvalidArgument`] `"image"`, `"depth"` or `"mask"` if an output's size is
+///   not `height * width` pixels (times `channels` for the image), or `"height"` /
+///   `"width"` if either is 0 or too large for the bins.
+pub fn rasterize(mesh: &ProjectedMesh<'_>, target: Target<'_>) -> Result<()> {
+    let Target {
+        image,
+        depth,
+        mask,
+        height,
+        width,
+    } = target;
+    let ch = mesh.channels;
+    if ch == 0 {
+        return Err(Error::invalid_argument(
+            "colours",
+            "needs at least one channel",
+        ));
+    }
+    if mesh.vertices.len().checked_mul(ch) != Some(mesh.colours.len()) {
+        return Err(Error::invalid_argument(
+            "colours",
+            format!(
+                "has {} values, {} vertices x {ch} channels need {}",
+                mesh.colours.len(),
+                mesh.vertices.len(),
+                mesh.vertices.len().saturating_mul(ch)
+            ),
+        ));
+    }
+    if height == 0 || width == 0 {
+        return Err(Error::invalid_argument(
+            if height == 0 { "height" } else { "width" },
+            format!("image size must be at least 1 x 1, got {width} x {height}"),
+        ));
+    }
+    if height > MAX_SIDE || width > MAX_SIDE {
+        return Err(Error::invalid_argument(
+            if height > MAX_SIDE { "height" } else { "width" },
+            format!("image size {width} x {height} is too large (at most {MAX_SIDE} a side)"),
+        ));
+    }
+    let n_px = height
+        .checked_mul(width)
+        .ok_or_else(|| Error::invalid_argument("height", "height x width overflows"))?;
+    for (name, len, want) in [
+        ("image", image.len(), n_px.checked_mul(ch)),
+        ("depth", depth.len(), Some(n_px)),
+        ("mask", mask.len(), Some(n_px)),
+    ] {
+        if Some(len) != want {
+            return Err(Error::invalid_argument(
+                name,
+                format!("has {len} elements, a {width} x {height} image needs {want:?}"),
+            ));
+        }
+    }
+    let n_vert = mesh.vertices.len();
+    if let Some((t, _)) = mesh.faces.iter().enumerate().find(|(_, f)| {
+        f.iter()
+            .any(|&v| usize::try_from(v).map_or(true, |v| v >= n_vert))
+    }) {
+        return Err(Error::invalid_item(
+            "faces",
+            t,
+            format!("vertex index out of range for {n_vert} vertices"),
+        ));
+    }
+
+    // Row range of every triangle (u32::MAX: skipped), in parallel chunks.
+    let n_tri = mesh.faces.len();
+    if u32::try_from(n_tri).is_err() {
+        return Err(Error::invalid_argument(
+            "faces",
+            format!("{n_tri} triangles; at most {} are supported", u32::MAX - 1),
+        ));
+    }
+    let mut rows = vec![(u32::MAX, 0u32); n_tri];
+    let set_rows = |(ci, chunk): (usize, &mut [(u32, u32)])| {
+        for (j, out) in chunk.iter_mut().enumerate() {
+            if let Some(s) = setup(mesh, ci * SETUP_CHUNK + j, height, width) {
+                // Rows fit in u32 (checked above).
+                *out = (s.rows.0 as u32, s.rows.1 as u32);
+            }
+        }
+    };
+    if parallel::run_serially(n_tri * 64, parallel::num_threads()) {
+        rows.chunks_mut(SETUP_CHUNK).enumerate().for_each(set_rows);
+    } else {
+        parallel::install(|| {
+            rows.par_chunks_mut(SETUP_CHUNK)
+                .enumerate()
+                .for_each(set_rows);
+        })?;
+    }
+
+    // Bins: counting sort of triangle indices by every bin their rows touch.
+    let n_bins = height.div_ceil(BIN_ROWS);
+    let mut start = vec![0usize; n_bins + 1];
+    for &(r0, r1) in &rows {
+        if r0 != u32::MAX {
+            for b in (r0 as usize / BIN_ROWS)..=(r1 as usize / BIN_ROWS) {
+                if let Some(s) = start.get_mut(b + 1) {
+                    *s += 1;
+                }
+            }
+        }
+    }
+    for b in 0..n_bins {
+        let prev = start.get(b).copied().unwrap_or(0);
+        if let Some(s) = start.get_mut(b + 1) {
+            *s += prev;
+        }
+    }
+    let mut fill = start.clone();
+    let mut binned = vec![0u32; start.last().copied().unwrap_or(0)];
+    for (t, &(r0, r1)) in rows.iter().enumerate() {
+        if r0 != u32::MAX {
+            for b in (r0 as usize / BIN_ROWS)..=(r1 as usize / BIN_ROWS) {
+                if let Some(f) = fill.get_mut(b) {
+                    if let Some(slot) = binned.get_mut(*f) {
+                        // t < n_tri, which fits in u32 (checked above).
+                        *slot = u32::try_from(t).unwrap_or(u32::MAX);
+                    }
+                    *f += 1;
+                }
+            }
+        }
+    }
+
+    depth.fill(f32::NAN);
+    let body = |first: usize, img: &mut [f32], dep: &mut [f32]| -> Result<()> {
+        let n = dep.len() / width;
+        if n == 0 {
+            return Ok(());
+        }
+        let last = first + n - 1;
+        let (ka, kb) = (first / BIN_ROWS, last / BIN_ROWS);
+        img.fill(f32::NAN);
+        for k in ka..=kb {
+            let (s0, s1) = (
+                start.get(k).copied().unwrap_or(0),
+                start.get(k + 1).copied().unwrap_or(0),
+            );
+            for &t in binned.get(s0..s1).unwrap_or(&[]) {
+                let t = t as usize;
+                let Some(&(r0, _)) = rows.get(t) else {
+                    continue;
+                };
+                // Visit a triangle once per task: from the first of its bins in range.
+                if (r0 as usize / BIN_ROWS).max(ka) != k {
+                    continue;
+                }
+                if let Some(s) = setup(mesh, t, height, width) {
+                    draw(&s, mesh, width, first, img, dep);
+                }
+            }
+        }
+        Ok(())
+    };
+    parallel::for_each_row_chunk_pair(image, depth, width * ch, width, body)?;
+    for (m, d) in mask.iter_mut().zip(depth.iter()) {
+        *m = u8::from(!d.is_nan());
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+#[allow(clippy::indexing_slicing)]
+mod tests {
+    use super::*;
+
+    fn render(
+        verts: &[[f32; 3]],
+        cols: &[f32],
+        faces: &[[u32; 3]],
+        h: usize,
+        w: usize,
+    ) -> (Vec<f32>, Vec<f32>, Vec<u8>) {
+        let mesh = ProjectedMesh {
+            vertices: verts,
+            colours: cols,
+            channels: 1,
+            faces,
+        };
+        let mut img = vec![0.0; h * w];
+        let mut dep = vec![0.0; h * w];
+        let mut mask = vec![0; h * w];
+        rasterize(
+            &mesh,
+            Target {
+                image: &mut img,
+                depth: &mut dep,
+                mask: &mut mask,
+                height: h,
+                width: w,
+            },
+        )
+        .unwrap();
+        (img, dep, mask)
+    }
+
+    #[test]
+    fn square_of_two_triangles_covers_each_pixel_once() {
+        // A square with corners on pixel centres: the shared diagonal passes through
+        // centres; each is drawn once, no cracks.
+        let v = [
+            [1.0, 1.0, 2.0],
+            [5.0, 1.0, 2.0],
+            [1.0, 5.0, 2.0],
+            [5.0, 5.0, 2.0],
+        ];
+        let c = [1.0, 1.0, 1.0, 1.0];
+        let (_, dep, mask) = render(&v, &c, &[[0, 2, 1], [1, 2, 3]], 8, 8);
+        let covered: usize = mask.iter().map(|&m| usize::from(m)).sum();
+        // Half-open: of the 5 x 5 centres on the closed square, 4 x 4 or a 5 x 5 with
+        // two edges owned; either way, no hole inside and the diagonal is covered.
+        for i in 2..5 {
+            assert_eq!(mask[i * 8 + i], 1, "diagonal centre ({i}, {i})");
+            assert_eq!(dep[i * 8 + i], 2.0);
+        }
+        assert!((16..=25).contains(&covered), "{covered}");
+    }
+
+    #[test]
+    fn nearer_triangle_wins_and_errors() {
+        let v = [
+            [0.0, 0.0, 3.0],
+            [9.0, 0.0, 3.0],
+            [0.0, 9.0, 3.0],
+            [0.0, 0.0, 1.0],
+            [9.0, 0.0, 1.0],
+            [0.0, 9.0, 1.0],
+        ];
+        let c = [0.0, 0.0, 0.0, 1.0, 1.0, 1.0];
+        let (img, dep, _) = render(&v, &c, &[[3, 4, 5], [0, 1, 2]], 10, 10);
+        assert_eq!(dep[11], 1.0);
+        assert_eq!(img[11], 1.0);
+        assert!(dep[99].is_nan() && img[99].is_nan());
+        let mesh = ProjectedMesh {
+            vertices: &v,
+            colours: &c,
+            channels: 1,
+            faces: &[[0, 1, 6]],
+        };
+        let (mut a, mut b, mut m) = (vec![0.0; 4], vec![0.0; 4], vec![0; 4]);
+        let err = rasterize(
+            &mesh,
+            Target {
+                image: &mut a,
+                depth: &mut b,
+                mask: &mut m,
+                height: 2,
+                width: 2,
+            },
+        )
+        .unwrap_err();
+        assert!(matches!(err, Error::InvalidItem { ref arg, index: 0, .. } if arg == "faces"));
+    }
+}
