@@ -14,8 +14,10 @@ from lfcam.depth import DepthResult, depth_from_views, estimate_depth
 from lfcam.errors import CalibrationError, InputError, LfcamError, NumericalError
 from lfcam.io import read_image, read_pfm, read_raw, write_pfm
 from lfcam.lightfield import LightField
+from lfcam.mesh import Mesh, mesh_from_depth
 from lfcam.pattern import make_pattern
 from lfcam.pipeline import CaptureResult, process_capture, rectify
+from lfcam.render import RenderResult, render_view
 from lfcam.simulator import SimConfig, SimulationResult, simulate
 from lfcam.stats import nan_median
 from lfcam.triangulate import TriangulationResult, triangulate
@@ -29,7 +31,9 @@ __all__ = [
     "InputError",
     "LfcamError",
     "LightField",
+    "Mesh",
     "NumericalError",
+    "RenderResult",
     "SimConfig",
     "SimulationResult",
     "TriangulationResult",
@@ -40,6 +44,7 @@ __all__ = [
     "estimate_depth",
     "get_num_threads",
     "make_pattern",
+    "mesh_from_depth",
     "nan_median",
     "process_capture",
     "read_image",
@@ -47,6 +52,7 @@ __all__ = [
     "read_raw",
     "rectify",
     "remap_bilinear",
+    "render_view",
     "set_num_threads",
     "simulate",
     "triangulate",

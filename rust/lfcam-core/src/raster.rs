@@ -30,6 +30,7 @@ use crate::parallel;
 
 /// Sub-pixel resolution of vertex positions: 1/256 px.
 pub const SUBPIXEL: i64 = 256;
+const SUBPIXEL_I32: i32 = 256;
 
 /// Vertex coordinates beyond this many pixels from the origin make a triangle skipped:
 /// with image sides of at most [`MAX_SIDE`] px, keeps the integer edge functions (sums
@@ -88,35 +89,93 @@ struct Setup {
     area: i64,
 }
 
+/// `v` px in sub-pixel units, rounded half away from zero. (`f64::round` is a libm
+/// call on baseline x86-64, several times slower than this truncating conversion.)
+/// `|v| <= MAX_COORD`, so the result fits in `i32`.
+fn snap(v: f32) -> i32 {
+    let s = f64::from(v) * SUBPIXEL as f64;
+    (s + if s >= 0.0 { 0.5 } else { -0.5 }) as i32
+}
+
 /// The first integer `>= v / SUBPIXEL`, for `v` in sub-pixel units.
-fn ceil_px(v: i64) -> i64 {
+fn ceil_px<T: Into<i64>>(v: T) -> i64 {
+    let v: i64 = v.into();
     v.div_euclid(SUBPIXEL) + i64::from(v.rem_euclid(SUBPIXEL) != 0)
 }
 
-/// Sets up triangle `t`, or `None` if it is skipped (see the module docs) or covers no
-/// pixel centre of a `height x width` image.
-fn setup(mesh: &ProjectedMesh<'_>, t: usize, height: usize, width: usize) -> Option<Setup> {
-    let face = mesh.faces.get(t)?;
-    let mut x = [0i64; 3];
-    let mut y = [0i64; 3];
-    let mut inv_z = [0f64; 3];
-    let mut idx = [0usize; 3];
-    for k in 0..3 {
-        let vi = usize::try_from(*face.get(k)?).ok()?;
-        let v = mesh.vertices.get(vi)?;
-        let [px, py, pz] = *v;
-        if !(px.is_finite() && py.is_finite() && pz.is_finite() && pz > 0.0) {
-            return None;
+/// A triangle after the first pass: vertices snapped to sub-pixel units (|value| <
+/// 2^29, so `i32`) and the pixel rows its bounding box covers (`r0 == u32::MAX`: the
+/// triangle is skipped).
+#[derive(Debug, Clone, Copy)]
+struct Prepared {
+    x: [i32; 3],
+    y: [i32; 3],
+    r0: u32,
+    r1: u32,
+}
+
+const SKIPPED: Prepared = Prepared {
+    x: [0; 3],
+    y: [0; 3],
+    r0: u32::MAX,
+    r1: 0,
+};
+
+/// First pass over triangle `t`: `SKIPPED` if it is skipped (see the module docs) or
+/// its bounding box holds no pixel centre of a `height x width` image.
+fn prepare(mesh: &ProjectedMesh<'_>, t: usize, height: usize, width: usize) -> Prepared {
+    let Some(face) = mesh.faces.get(t) else {
+        return SKIPPED;
+    };
+    let mut x = [0i32; 3];
+    let mut y = [0i32; 3];
+    for ((&vi, xo), yo) in face.iter().zip(x.iter_mut()).zip(y.iter_mut()) {
+        let Some(&[px, py, pz]) = usize::try_from(vi).ok().and_then(|v| mesh.vertices.get(v))
+        else {
+            return SKIPPED;
+        };
+        // `!(a <= b)` is also true for NaN.
+        if !(px.abs() <= MAX_COORD && py.abs() <= MAX_COORD && pz > 0.0 && pz.is_finite()) {
+            return SKIPPED;
         }
-        if px.abs() > MAX_COORD || py.abs() > MAX_COORD {
-            return None;
-        }
-        *x.get_mut(k)? = (f64::from(px) * SUBPIXEL as f64).round() as i64;
-        *y.get_mut(k)? = (f64::from(py) * SUBPIXEL as f64).round() as i64;
-        *inv_z.get_mut(k)? = 1.0 / f64::from(pz);
-        *idx.get_mut(k)? = vi;
+        *xo = snap(px);
+        *yo = snap(py);
     }
-    let mut area = (x[1] - x[0]) * (y[2] - y[0]) - (y[1] - y[0]) * (x[2] - x[0]);
+    let [x0, x1, x2] = x;
+    let [y0, y1, y2] = y;
+    let (x_lo, x_hi) = (x0.min(x1).min(x2), x0.max(x1).max(x2));
+    let (y_lo, y_hi) = (y0.min(y1).min(y2), y0.max(y1).max(y2));
+    let c0 = ceil_px(x_lo).max(0);
+    let c1 = i64::from(x_hi.div_euclid(SUBPIXEL_I32)).min(width as i64 - 1);
+    let r0 = ceil_px(y_lo).max(0);
+    let r1 = i64::from(y_hi.div_euclid(SUBPIXEL_I32)).min(height as i64 - 1);
+    if c0 > c1 || r0 > r1 {
+        return SKIPPED;
+    }
+    // 0 <= r0 <= r1 < height <= MAX_SIDE: fits in u32.
+    Prepared {
+        x,
+        y,
+        r0: r0 as u32,
+        r1: r1 as u32,
+    }
+}
+
+/// Second pass over triangle `t` (prepared as `p`): orientation, area, columns and
+/// `1/z`; `None` if its snapped area is zero.
+fn setup(p: &Prepared, mesh: &ProjectedMesh<'_>, t: usize, width: usize) -> Option<Setup> {
+    let face = mesh.faces.get(t)?;
+    let mut x = p.x.map(i64::from);
+    let mut y = p.y.map(i64::from);
+    let mut idx = [0usize; 3];
+    let mut inv_z = [0f64; 3];
+    for ((&vi, io), zo) in face.iter().zip(idx.iter_mut()).zip(inv_z.iter_mut()) {
+        *io = usize::try_from(vi).ok()?;
+        *zo = 1.0 / f64::from(mesh.vertices.get(*io)?[2]);
+    }
+    let [x0, x1, x2] = x;
+    let [y0, y1, y2] = y;
+    let mut area = (x1 - x0) * (y2 - y0) - (y1 - y0) * (x2 - x0);
     if area == 0 {
         return None;
     }
@@ -127,25 +186,18 @@ fn setup(mesh: &ProjectedMesh<'_>, t: usize, height: usize, width: usize) -> Opt
         idx.swap(1, 2);
         area = -area;
     }
-    let (x_lo, x_hi) = (x[0].min(x[1]).min(x[2]), x[0].max(x[1]).max(x[2]));
-    let (y_lo, y_hi) = (y[0].min(y[1]).min(y[2]), y[0].max(y[1]).max(y[2]));
-    let c0 = ceil_px(x_lo).max(0);
-    let c1 = x_hi
+    let c0 = ceil_px(x0.min(x1).min(x2)).max(0);
+    let c1 = x0
+        .max(x1)
+        .max(x2)
         .div_euclid(SUBPIXEL)
-        .min(i64::try_from(width).ok()? - 1);
-    let r0 = ceil_px(y_lo).max(0);
-    let r1 = y_hi
-        .div_euclid(SUBPIXEL)
-        .min(i64::try_from(height).ok()? - 1);
-    if c0 > c1 || r0 > r1 {
-        return None;
-    }
+        .min(width as i64 - 1);
     Some(Setup {
         x,
         y,
         inv_z,
         idx,
-        rows: (usize::try_from(r0).ok()?, usize::try_from(r1).ok()?),
+        rows: (p.r0 as usize, p.r1 as usize),
         cols: (usize::try_from(c0).ok()?, usize::try_from(c1).ok()?),
         area,
     })
@@ -313,37 +365,39 @@ pub fn rasterize(mesh: &ProjectedMesh<'_>, target: Target<'_>) -> Result<()> {
         ));
     }
 
-    // Row range of every triangle (u32::MAX: skipped), in parallel chunks.
+    // First pass: snapped vertices and rows of every triangle, in parallel chunks.
     let n_tri = mesh.faces.len();
     if u32::try_from(n_tri).is_err() {
         return Err(Error::invalid_argument(
             "faces",
-            format!("{n_tri} triangles; at most {} are supported", u32::MAX - 1),
+            format!("{n_tri} triangles; at most {} are supported", u32::MAX),
         ));
     }
-    let mut rows = vec![(u32::MAX, 0u32); n_tri];
-    let set_rows = |(ci, chunk): (usize, &mut [(u32, u32)])| {
+    let mut prepared = vec![SKIPPED; n_tri];
+    let first_pass = |(ci, chunk): (usize, &mut [Prepared])| {
         for (j, out) in chunk.iter_mut().enumerate() {
-            if let Some(s) = setup(mesh, ci * SETUP_CHUNK + j, height, width) {
-                // Rows fit in u32 (checked above).
-                *out = (s.rows.0 as u32, s.rows.1 as u32);
-            }
+            *out = prepare(mesh, ci * SETUP_CHUNK + j, height, width);
         }
     };
     if parallel::run_serially(n_tri * 64, parallel::num_threads()) {
-        rows.chunks_mut(SETUP_CHUNK).enumerate().for_each(set_rows);
+        prepared
+            .chunks_mut(SETUP_CHUNK)
+            .enumerate()
+            .for_each(first_pass);
     } else {
         parallel::install(|| {
-            rows.par_chunks_mut(SETUP_CHUNK)
+            prepared
+                .par_chunks_mut(SETUP_CHUNK)
                 .enumerate()
-                .for_each(set_rows);
+                .for_each(first_pass);
         })?;
     }
 
     // Bins: counting sort of triangle indices by every bin their rows touch.
     let n_bins = height.div_ceil(BIN_ROWS);
     let mut start = vec![0usize; n_bins + 1];
-    for &(r0, r1) in &rows {
+    for p in &prepared {
+        let (r0, r1) = (p.r0, p.r1);
         if r0 != u32::MAX {
             for b in (r0 as usize / BIN_ROWS)..=(r1 as usize / BIN_ROWS) {
                 if let Some(s) = start.get_mut(b + 1) {
@@ -360,7 +414,8 @@ pub fn rasterize(mesh: &ProjectedMesh<'_>, target: Target<'_>) -> Result<()> {
     }
     let mut fill = start.clone();
     let mut binned = vec![0u32; start.last().copied().unwrap_or(0)];
-    for (t, &(r0, r1)) in rows.iter().enumerate() {
+    for (t, p) in prepared.iter().enumerate() {
+        let (r0, r1) = (p.r0, p.r1);
         if r0 != u32::MAX {
             for b in (r0 as usize / BIN_ROWS)..=(r1 as usize / BIN_ROWS) {
                 if let Some(f) = fill.get_mut(b) {
@@ -390,14 +445,14 @@ pub fn rasterize(mesh: &ProjectedMesh<'_>, target: Target<'_>) -> Result<()> {
             );
             for &t in binned.get(s0..s1).unwrap_or(&[]) {
                 let t = t as usize;
-                let Some(&(r0, _)) = rows.get(t) else {
+                let Some(p) = prepared.get(t) else {
                     continue;
                 };
                 // Visit a triangle once per task: from the first of its bins in range.
-                if (r0 as usize / BIN_ROWS).max(ka) != k {
+                if (p.r0 as usize / BIN_ROWS).max(ka) != k {
                     continue;
                 }
-                if let Some(s) = setup(mesh, t, height, width) {
+                if let Some(s) = setup(p, mesh, t, width) {
                     draw(&s, mesh, width, first, img, dep);
                 }
             }
