@@ -287,6 +287,16 @@ def _add_process(sub: Any) -> None:
     p.add_argument("--jobs", type=int, default=1, help="captures processed in parallel")
     p.add_argument("--save-views", action="store_true", help="also write the rectified views")
     p.add_argument("--overwrite", action="store_true", help="redo complete outputs")
+    p.add_argument("--mesh", action="store_true", help="also write mesh.ply (coloured triangles)")
+    p.add_argument(
+        "--novel-view",
+        metavar="TX,TY,TZ[,RX,RY,RZ]",
+        help="write novel_view.png from this pose relative to the reference camera: "
+        "translation in metres, rotation vector in degrees",
+    )
+    p.add_argument(
+        "--orbit", type=int, default=0, metavar="N", help="write N orbit frames and orbit.mp4"
+    )
     p.set_defaults(func=_cmd_process)
 
 
@@ -325,7 +335,7 @@ def _worker_init(cal_path: str, threads: int) -> None:
 
 
 def _process_one(
-    src: str, dst: str, extra: dict[str, Any], save_views: bool
+    src: str, dst: str, extra: dict[str, Any], save_views: bool, novel: Any = None
 ) -> tuple[str, str | None]:
     from .outputs import write_capture
     from .pipeline import process_capture
@@ -333,10 +343,32 @@ def _process_one(
     try:
         cal = _WORKER["cal"]
         res = process_capture(src, cal, threads=_WORKER["threads"])
-        write_capture(dst, res, cal, extra=extra, save_views=save_views)
+        write_capture(dst, res, cal, extra=extra, save_views=save_views, novel=novel)
         return src, None
     except (LfcamError, OSError, ValueError) as exc:
         return src, str(exc)
+
+
+def _novel_options(args: argparse.Namespace, cal: Any) -> Any:
+    """--mesh / --novel-view / --orbit as :class:`lfcam.render.NovelViewOptions`."""
+    import math
+
+    from .render import NovelViewOptions, parse_pose
+
+    if args.orbit < 0:
+        raise InputError(f"--orbit: must be >= 0, got {args.orbit}")
+    pose = None
+    if args.novel_view is not None:
+        try:
+            pose = parse_pose(args.novel_view)
+        except InputError as exc:
+            raise InputError(f"--novel-view: {exc}") from None
+    opts = NovelViewOptions(mesh=args.mesh, pose=pose, orbit=args.orbit)
+    if (pose is not None or opts.orbit) and not (cal.metric and math.isfinite(cal.pattern_pitch)):
+        raise InputError(
+            "--novel-view/--orbit: need a metric calibration with a known pattern pitch"
+        )
+    return opts
 
 
 def _cmd_process(args: argparse.Namespace) -> int:
@@ -345,6 +377,7 @@ def _cmd_process(args: argparse.Namespace) -> int:
     if args.jobs < 1:
         raise InputError(f"--jobs: must be >= 1, got {args.jobs}")
     cal = Calibration.load(args.calibration)
+    novel = _novel_options(args, cal)
     pairs = _find_captures(args.input, args.output)
     todo = [(s, d) for s, d in pairs if args.overwrite or not (d / "result.json").is_file()]
     skipped = len(pairs) - len(todo)
@@ -365,7 +398,7 @@ def _cmd_process(args: argparse.Namespace) -> int:
     if jobs == 1:
         _WORKER.update(cal=cal, threads=threads)
         for s, d in todo:
-            src, err = _process_one(str(s), str(d), extra, args.save_views)
+            src, err = _process_one(str(s), str(d), extra, args.save_views, novel)
             if err:
                 failures.append((src, err))
             bar.update(1)
@@ -383,7 +416,8 @@ def _cmd_process(args: argparse.Namespace) -> int:
             initargs=(str(args.calibration), threads),
         ) as ex:
             futs = [
-                ex.submit(_process_one, str(s), str(d), extra, args.save_views) for s, d in todo
+                ex.submit(_process_one, str(s), str(d), extra, args.save_views, novel)
+                for s, d in todo
             ]
             for f in futs:
                 src, err = f.result()

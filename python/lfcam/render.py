@@ -36,6 +36,7 @@ if TYPE_CHECKING:
     from .pipeline import CaptureResult
 
 __all__ = [
+    "NovelViewOptions",
     "RenderResult",
     "lenslet_camera",
     "orbit_poses",
@@ -45,6 +46,7 @@ __all__ = [
     "reference_camera",
     "render_mesh",
     "render_view",
+    "write_novel_views",
 ]
 
 #: Vertices nearer than this to the virtual camera's centre plane (metres) are not
@@ -409,3 +411,86 @@ def parse_pose(text: str) -> np.ndarray:
         raise InputError(f"pose: expected 3 or 6 comma-separated numbers, got {len(vals)}")
     r = np.radians(vals[3:]) if len(vals) == 6 else np.zeros(3)
     return pose_matrix((r, np.array(vals[:3])))
+
+
+@dataclass
+class NovelViewOptions:
+    """What ``lfcam process`` renders besides depth (see :func:`write_novel_views`).
+
+    Attributes
+    ----------
+    mesh : bool
+        Write ``mesh.ply``.
+    pose : (4, 4) array or None
+        Write ``novel_view.png`` (and ``novel_view_depth.tiff``) from this pose.
+    orbit : int
+        Write this many orbit frames (``orbit/frame_NNN.png``) and ``orbit.mp4``; 0: none.
+    """
+
+    mesh: bool = False
+    pose: np.ndarray | None = None
+    orbit: int = 0
+
+    @property
+    def any(self) -> bool:
+        """Whether anything is asked for."""
+        return self.mesh or self.pose is not None or self.orbit > 0
+
+
+def write_novel_views(
+    folder: Any, result: CaptureResult, cal: Calibration, options: NovelViewOptions
+) -> dict[str, Any]:
+    """Write the mesh and novel views of one processed capture into ``folder``.
+
+    Called by :func:`lfcam.outputs.write_capture` inside its atomic folder. PNGs are
+    gamma-encoded like the other previews; holes (nothing seen) are black.
+
+    Returns
+    -------
+    dict
+        What was written, for ``result.json``.
+    """
+    import time
+    from pathlib import Path
+
+    import cv2
+
+    from .io import write_image
+    from .mesh import write_mesh_ply
+    from .outputs import _to_u8
+
+    out = Path(folder)
+    depth = result.depth.depth
+    if depth is None:
+        raise InputError("result: meshes and novel views need metric depth")
+    t0 = time.perf_counter()
+    mesh = mesh_from_depth(depth, cal, result.views[cal.reference])
+    info: dict[str, Any] = {
+        "mesh_max_ratio": DEFAULT_MAX_RATIO,
+        "mesh_vertices": len(mesh.vertices),
+        "mesh_faces": len(mesh.faces),
+    }
+    if options.mesh:
+        write_mesh_ply(out / "mesh.ply", mesh)
+    if options.pose is not None:
+        r = render_mesh(mesh, cal, options.pose)
+        write_image(out / "novel_view.png", _to_u8(r.image))
+        write_image(out / "novel_view_depth.tiff", r.depth)
+        info["novel_view_pose"] = options.pose.tolist()
+        info["novel_view_coverage"] = float(r.mask.mean())
+    if options.orbit > 0:
+        (out / "orbit").mkdir()
+        H, W = cal.rect_shape
+        video = cv2.VideoWriter(str(out / "orbit.mp4"), cv2.VideoWriter.fourcc(*"mp4v"), 12, (W, H))
+        try:
+            for k, pose in enumerate(orbit_poses(cal, options.orbit)):
+                rgb = _to_u8(render_mesh(mesh, cal, pose).image)
+                if rgb.ndim == 2:
+                    rgb = np.repeat(rgb[..., None], 3, 2)
+                write_image(out / "orbit" / f"frame_{k:03d}.png", rgb)
+                video.write(np.ascontiguousarray(rgb[..., ::-1]))
+        finally:
+            video.release()
+        info["orbit_frames"] = options.orbit
+    info["novel_views_s"] = time.perf_counter() - t0
+    return info
