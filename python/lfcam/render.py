@@ -128,7 +128,7 @@ def rasterize(
     except (TypeError, ValueError):
         raise InputError(f"shape: expected (H, W), got {shape!r}") from None
     image, depth, mask = _lfcam.rasterize(v, c, f, h, w)
-    return image, depth, mask.astype(bool)
+    return image, depth, mask.view(bool)  # 0/1 bytes: a valid bool array, no copy
 
 
 def _require_metric(cal: Calibration) -> None:

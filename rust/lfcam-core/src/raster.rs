@@ -57,7 +57,7 @@ pub struct ProjectedMesh<'a> {
     /// Number of colour channels (>= 1).
     pub channels: usize,
     /// Vertex indices of each triangle.
-    pub faces: &'a [[u32; 3]],
+    pub faces: &'a [[i32; 3]],
 }
 
 /// The outputs of [`rasterize`], `height * width` pixels each.
@@ -103,44 +103,45 @@ fn ceil_px<T: Into<i64>>(v: T) -> i64 {
     v.div_euclid(SUBPIXEL) + i64::from(v.rem_euclid(SUBPIXEL) != 0)
 }
 
-/// A triangle after the first pass: vertices snapped to sub-pixel units (|value| <
-/// 2^29, so `i32`) and the pixel rows its bounding box covers (`r0 == u32::MAX`: the
-/// triangle is skipped).
+/// A triangle after the first pass: the pixel rows its bounding box covers
+/// (`r0 == u32::MAX`: the triangle is skipped). Kept small (8 bytes): the second pass
+/// re-reads and re-snaps the vertices, cheaper than storing them for millions of
+/// triangles.
 #[derive(Debug, Clone, Copy)]
 struct Prepared {
-    x: [i32; 3],
-    y: [i32; 3],
     r0: u32,
     r1: u32,
 }
 
 const SKIPPED: Prepared = Prepared {
-    x: [0; 3],
-    y: [0; 3],
     r0: u32::MAX,
     r1: 0,
 };
 
-/// First pass over triangle `t`: `SKIPPED` if it is skipped (see the module docs) or
-/// its bounding box holds no pixel centre of a `height x width` image.
-fn prepare(mesh: &ProjectedMesh<'_>, t: usize, height: usize, width: usize) -> Prepared {
-    let Some(face) = mesh.faces.get(t) else {
-        return SKIPPED;
-    };
+/// The snapped `(x, y)` of the vertices of `face`, or `None` if a vertex is unusable.
+fn snapped(mesh: &ProjectedMesh<'_>, face: &[i32; 3]) -> Option<([i32; 3], [i32; 3], [f32; 3])> {
     let mut x = [0i32; 3];
     let mut y = [0i32; 3];
-    for ((&vi, xo), yo) in face.iter().zip(x.iter_mut()).zip(y.iter_mut()) {
-        let Some(&[px, py, pz]) = usize::try_from(vi).ok().and_then(|v| mesh.vertices.get(v))
-        else {
-            return SKIPPED;
-        };
+    let mut z = [0f32; 3];
+    for (((&vi, xo), yo), zo) in face.iter().zip(&mut x).zip(&mut y).zip(&mut z) {
+        let &[px, py, pz] = mesh.vertices.get(usize::try_from(vi).ok()?)?;
         // `!(a <= b)` is also true for NaN.
         if !(px.abs() <= MAX_COORD && py.abs() <= MAX_COORD && pz > 0.0 && pz.is_finite()) {
-            return SKIPPED;
+            return None;
         }
         *xo = snap(px);
         *yo = snap(py);
+        *zo = pz;
     }
+    Some((x, y, z))
+}
+
+/// First pass over triangle `t`: `SKIPPED` if it is skipped (see the module docs) or
+/// its bounding box holds no pixel centre of a `height x width` image.
+fn prepare(mesh: &ProjectedMesh<'_>, t: usize, height: usize, width: usize) -> Prepared {
+    let Some((x, y, _)) = mesh.faces.get(t).and_then(|f| snapped(mesh, f)) else {
+        return SKIPPED;
+    };
     let [x0, x1, x2] = x;
     let [y0, y1, y2] = y;
     let (x_lo, x_hi) = (x0.min(x1).min(x2), x0.max(x1).max(x2));
@@ -154,8 +155,6 @@ fn prepare(mesh: &ProjectedMesh<'_>, t: usize, height: usize, width: usize) -> P
     }
     // 0 <= r0 <= r1 < height <= MAX_SIDE: fits in u32.
     Prepared {
-        x,
-        y,
         r0: r0 as u32,
         r1: r1 as u32,
     }
@@ -165,13 +164,13 @@ fn prepare(mesh: &ProjectedMesh<'_>, t: usize, height: usize, width: usize) -> P
 /// `1/z`; `None` if its snapped area is zero.
 fn setup(p: &Prepared, mesh: &ProjectedMesh<'_>, t: usize, width: usize) -> Option<Setup> {
     let face = mesh.faces.get(t)?;
-    let mut x = p.x.map(i64::from);
-    let mut y = p.y.map(i64::from);
+    let (xs, ys, zs) = snapped(mesh, face)?;
+    let mut x = xs.map(i64::from);
+    let mut y = ys.map(i64::from);
+    let mut inv_z = zs.map(|z| 1.0 / f64::from(z));
     let mut idx = [0usize; 3];
-    let mut inv_z = [0f64; 3];
-    for ((&vi, io), zo) in face.iter().zip(idx.iter_mut()).zip(inv_z.iter_mut()) {
+    for (&vi, io) in face.iter().zip(&mut idx) {
         *io = usize::try_from(vi).ok()?;
-        *zo = 1.0 / f64::from(mesh.vertices.get(*io)?[2]);
     }
     let [x0, x1, x2] = x;
     let [y0, y1, y2] = y;
@@ -474,7 +473,7 @@ mod tests {
     fn render(
         verts: &[[f32; 3]],
         cols: &[f32],
-        faces: &[[u32; 3]],
+        faces: &[[i32; 3]],
         h: usize,
         w: usize,
     ) -> (Vec<f32>, Vec<f32>, Vec<u8>) {

@@ -70,11 +70,6 @@ pub fn rasterize<'py>(
             ));
         }
         let (face_rows, _) = c_slice(&f_ro, "faces")?.as_chunks::<3>();
-        // Negative indices become u32 values above any vertex count: refused by the core.
-        let faces_u32: Vec<[u32; 3]> = face_rows
-            .iter()
-            .map(|f| f.map(|v| u32::try_from(v).unwrap_or(u32::MAX)))
-            .collect();
 
         let image = new_array::<f32>(py, &[h, w, ch])?;
         let depth = new_array::<f32>(py, &[h, w])?;
@@ -94,7 +89,7 @@ pub fn rasterize<'py>(
                 vertices: verts,
                 colours: cols,
                 channels: ch,
-                faces: &faces_u32,
+                faces: face_rows,
             };
             py.detach(|| lfcam_core::parallel::install(|| core::rasterize(&mesh, target)))
                 .and_then(|inner| inner)
