@@ -17,6 +17,7 @@ __all__ = [
     "remap_bilinear",
     "set_num_threads",
     "triangulate",
+    "weighted_median_fill",
 ]
 
 _Pixel = TypeVar("_Pixel", np.uint8, np.uint16, np.float32)

@@ -19,9 +19,13 @@
 //! - Pixels no triangle covers are NaN in the image and the depth, and 0 in the mask.
 //!
 //! # Parallelism
-//! Triangles are binned by rows ([`BIN_ROWS`] rows per bin, a triangle in every bin its
-//! rows touch), then the output rows are split into tasks by [`parallel`]'s policy; a
-//! task draws the triangles of its bins, clipped to its rows, visiting each once.
+//! Sort-last: the triangles are split into consecutive ranges, one per thread (at most
+//! [`MAX_PARTS`]); the first range is drawn into the target, each other one into a
+//! frame buffer of its own, and the buffers are merged in range order keeping the
+//! strictly nearer surface. Each triangle is set up once (a depth mesh of 1 Mpx has
+//! 2 M triangles of half a pixel each: per-triangle work dominates, so binning them by
+//! rows first cost more than it saved), and the result equals the serial one exactly,
+//! ties included (a later triangle wins only when strictly nearer, as in one pass).
 
 use rayon::prelude::*;
 
@@ -30,7 +34,6 @@ use crate::parallel;
 
 /// Sub-pixel resolution of vertex positions: 1/256 px.
 pub const SUBPIXEL: i64 = 256;
-const SUBPIXEL_I32: i32 = 256;
 
 /// Vertex coordinates beyond this many pixels from the origin make a triangle skipped:
 /// with image sides of at most [`MAX_SIDE`] px, keeps the integer edge functions (sums
@@ -40,12 +43,11 @@ pub const MAX_COORD: f32 = 1_048_576.0;
 /// Largest image side accepted (pixels), for the same reason as [`MAX_COORD`].
 pub const MAX_SIDE: usize = 1 << 20;
 
-/// Rows per triangle bin: small enough that a task's triangles are found without
-/// scanning others', large enough that few small triangles straddle two bins.
-pub const BIN_ROWS: usize = 8;
+/// Most triangle ranges drawn in parallel (each beyond the first costs a frame buffer).
+pub const MAX_PARTS: usize = 8;
 
-/// Triangles set up per serial chunk when finding their row ranges.
-const SETUP_CHUNK: usize = 16 * 1024;
+/// Fewest triangles per range: below this, a frame buffer costs more than it saves.
+pub const MIN_TRIANGLES_PER_PART: usize = 64 * 1024;
 
 /// A borrowed triangle mesh whose vertices are projected to the target image.
 #[derive(Debug, Clone, Copy)]
@@ -103,21 +105,6 @@ fn ceil_px<T: Into<i64>>(v: T) -> i64 {
     v.div_euclid(SUBPIXEL) + i64::from(v.rem_euclid(SUBPIXEL) != 0)
 }
 
-/// A triangle after the first pass: the pixel rows its bounding box covers
-/// (`r0 == u32::MAX`: the triangle is skipped). Kept small (8 bytes): the second pass
-/// re-reads and re-snaps the vertices, cheaper than storing them for millions of
-/// triangles.
-#[derive(Debug, Clone, Copy)]
-struct Prepared {
-    r0: u32,
-    r1: u32,
-}
-
-const SKIPPED: Prepared = Prepared {
-    r0: u32::MAX,
-    r1: 0,
-};
-
 /// The snapped `(x, y)` of the vertices of `face`, or `None` if a vertex is unusable.
 fn snapped(mesh: &ProjectedMesh<'_>, face: &[i32; 3]) -> Option<([i32; 3], [i32; 3], [f32; 3])> {
     let mut x = [0i32; 3];
@@ -136,47 +123,38 @@ fn snapped(mesh: &ProjectedMesh<'_>, face: &[i32; 3]) -> Option<([i32; 3], [i32;
     Some((x, y, z))
 }
 
-/// First pass over triangle `t`: `SKIPPED` if it is skipped (see the module docs) or
-/// its bounding box holds no pixel centre of a `height x width` image.
-fn prepare(mesh: &ProjectedMesh<'_>, t: usize, height: usize, width: usize) -> Prepared {
-    let Some((x, y, _)) = mesh.faces.get(t).and_then(|f| snapped(mesh, f)) else {
-        return SKIPPED;
-    };
-    let [x0, x1, x2] = x;
-    let [y0, y1, y2] = y;
-    let (x_lo, x_hi) = (x0.min(x1).min(x2), x0.max(x1).max(x2));
-    let (y_lo, y_hi) = (y0.min(y1).min(y2), y0.max(y1).max(y2));
-    let c0 = ceil_px(x_lo).max(0);
-    let c1 = i64::from(x_hi.div_euclid(SUBPIXEL_I32)).min(width as i64 - 1);
-    let r0 = ceil_px(y_lo).max(0);
-    let r1 = i64::from(y_hi.div_euclid(SUBPIXEL_I32)).min(height as i64 - 1);
-    if c0 > c1 || r0 > r1 {
-        return SKIPPED;
-    }
-    // 0 <= r0 <= r1 < height <= MAX_SIDE: fits in u32.
-    Prepared {
-        r0: r0 as u32,
-        r1: r1 as u32,
-    }
-}
-
-/// Second pass over triangle `t` (prepared as `p`): orientation, area, columns and
-/// `1/z`; `None` if its snapped area is zero.
-fn setup(p: &Prepared, mesh: &ProjectedMesh<'_>, t: usize, width: usize) -> Option<Setup> {
+/// Sets up triangle `t` for a `height x width` image: `None` if it is skipped (see the
+/// module docs), has zero snapped area, or its bounding box holds no pixel centre.
+fn setup(mesh: &ProjectedMesh<'_>, t: usize, height: usize, width: usize) -> Option<Setup> {
     let face = mesh.faces.get(t)?;
     let (xs, ys, zs) = snapped(mesh, face)?;
     let mut x = xs.map(i64::from);
     let mut y = ys.map(i64::from);
+    let [x0, x1, x2] = x;
+    let [y0, y1, y2] = y;
+    let c0 = ceil_px(x0.min(x1).min(x2)).max(0);
+    let c1 = x0
+        .max(x1)
+        .max(x2)
+        .div_euclid(SUBPIXEL)
+        .min(width as i64 - 1);
+    let r0 = ceil_px(y0.min(y1).min(y2)).max(0);
+    let r1 = y0
+        .max(y1)
+        .max(y2)
+        .div_euclid(SUBPIXEL)
+        .min(height as i64 - 1);
+    if c0 > c1 || r0 > r1 {
+        return None;
+    }
+    let mut area = (x1 - x0) * (y2 - y0) - (y1 - y0) * (x2 - x0);
+    if area == 0 {
+        return None;
+    }
     let mut inv_z = zs.map(|z| 1.0 / f64::from(z));
     let mut idx = [0usize; 3];
     for (&vi, io) in face.iter().zip(&mut idx) {
         *io = usize::try_from(vi).ok()?;
-    }
-    let [x0, x1, x2] = x;
-    let [y0, y1, y2] = y;
-    let mut area = (x1 - x0) * (y2 - y0) - (y1 - y0) * (x2 - x0);
-    if area == 0 {
-        return None;
     }
     if area < 0 {
         x.swap(1, 2);
@@ -185,21 +163,31 @@ fn setup(p: &Prepared, mesh: &ProjectedMesh<'_>, t: usize, width: usize) -> Opti
         idx.swap(1, 2);
         area = -area;
     }
-    let c0 = ceil_px(x0.min(x1).min(x2)).max(0);
-    let c1 = x0
-        .max(x1)
-        .max(x2)
-        .div_euclid(SUBPIXEL)
-        .min(width as i64 - 1);
     Some(Setup {
         x,
         y,
         inv_z,
         idx,
-        rows: (p.r0 as usize, p.r1 as usize),
+        rows: (usize::try_from(r0).ok()?, usize::try_from(r1).ok()?),
         cols: (usize::try_from(c0).ok()?, usize::try_from(c1).ok()?),
         area,
     })
+}
+
+/// Draws the triangles `range` into a full-frame `image` and `depth`, in order.
+fn draw_range(
+    mesh: &ProjectedMesh<'_>,
+    range: std::ops::Range<usize>,
+    height: usize,
+    width: usize,
+    image: &mut [f32],
+    depth: &mut [f32],
+) {
+    for t in range {
+        if let Some(s) = setup(mesh, t, height, width) {
+            draw(&s, mesh, width, 0, image, depth);
+        }
+    }
 }
 
 /// Whether the edge from `(ax, ay)` to `(bx, by)` owns the pixel centres exactly on it.
@@ -364,101 +352,64 @@ pub fn rasterize(mesh: &ProjectedMesh<'_>, target: Target<'_>) -> Result<()> {
         ));
     }
 
-    // First pass: snapped vertices and rows of every triangle, in parallel chunks.
     let n_tri = mesh.faces.len();
-    if u32::try_from(n_tri).is_err() {
-        return Err(Error::invalid_argument(
-            "faces",
-            format!("{n_tri} triangles; at most {} are supported", u32::MAX),
-        ));
-    }
-    let mut prepared = vec![SKIPPED; n_tri];
-    let first_pass = |(ci, chunk): (usize, &mut [Prepared])| {
-        for (j, out) in chunk.iter_mut().enumerate() {
-            *out = prepare(mesh, ci * SETUP_CHUNK + j, height, width);
-        }
-    };
-    if parallel::run_serially(n_tri * 64, parallel::num_threads()) {
-        prepared
-            .chunks_mut(SETUP_CHUNK)
-            .enumerate()
-            .for_each(first_pass);
+    depth.fill(f32::NAN);
+    image.fill(f32::NAN);
+    let threads = parallel::num_threads();
+    let parts = if parallel::run_serially(n_tri.saturating_mul(64), threads) {
+        1
     } else {
-        parallel::install(|| {
-            prepared
-                .par_chunks_mut(SETUP_CHUNK)
-                .enumerate()
-                .for_each(first_pass);
+        threads
+            .min(MAX_PARTS)
+            .min(n_tri / MIN_TRIANGLES_PER_PART)
+            .max(1)
+    };
+    if parts == 1 {
+        draw_range(mesh, 0..n_tri, height, width, image, depth);
+    } else {
+        let per = n_tri.div_ceil(parts);
+        let mut buffers: Vec<(Vec<f32>, Vec<f32>)> = (1..parts)
+            .map(|_| (vec![f32::NAN; n_px * ch], vec![f32::NAN; n_px]))
+            .collect();
+        {
+            let mut frames: Vec<(&mut [f32], &mut [f32])> = vec![(&mut *image, &mut *depth)];
+            frames.extend(
+                buffers
+                    .iter_mut()
+                    .map(|(i, d)| (i.as_mut_slice(), d.as_mut_slice())),
+            );
+            parallel::install(|| {
+                frames
+                    .into_par_iter()
+                    .enumerate()
+                    .for_each(|(k, (img, dep))| {
+                        let range = (k * per).min(n_tri)..((k + 1) * per).min(n_tri);
+                        draw_range(mesh, range, height, width, img, dep);
+                    });
+            })?;
+        }
+        // Merge in range order: a later range wins only where strictly nearer.
+        parallel::for_each_row_chunk_pair(image, depth, width * ch, width, |first, img, dep| {
+            let (p0, p1) = (first * width, first * width + dep.len());
+            for (b_img, b_dep) in &buffers {
+                let (Some(bi), Some(bd)) = (b_img.get(p0 * ch..p1 * ch), b_dep.get(p0..p1)) else {
+                    return Err(Error::invalid_argument("image", "internal: buffer size"));
+                };
+                for (((d, px), bz), bpx) in dep
+                    .iter_mut()
+                    .zip(img.chunks_exact_mut(ch))
+                    .zip(bd)
+                    .zip(bi.chunks_exact(ch))
+                {
+                    if *bz < *d || (d.is_nan() && !bz.is_nan()) {
+                        *d = *bz;
+                        px.copy_from_slice(bpx);
+                    }
+                }
+            }
+            Ok(())
         })?;
     }
-
-    // Bins: counting sort of triangle indices by every bin their rows touch.
-    let n_bins = height.div_ceil(BIN_ROWS);
-    let mut start = vec![0usize; n_bins + 1];
-    for p in &prepared {
-        let (r0, r1) = (p.r0, p.r1);
-        if r0 != u32::MAX {
-            for b in (r0 as usize / BIN_ROWS)..=(r1 as usize / BIN_ROWS) {
-                if let Some(s) = start.get_mut(b + 1) {
-                    *s += 1;
-                }
-            }
-        }
-    }
-    for b in 0..n_bins {
-        let prev = start.get(b).copied().unwrap_or(0);
-        if let Some(s) = start.get_mut(b + 1) {
-            *s += prev;
-        }
-    }
-    let mut fill = start.clone();
-    let mut binned = vec![0u32; start.last().copied().unwrap_or(0)];
-    for (t, p) in prepared.iter().enumerate() {
-        let (r0, r1) = (p.r0, p.r1);
-        if r0 != u32::MAX {
-            for b in (r0 as usize / BIN_ROWS)..=(r1 as usize / BIN_ROWS) {
-                if let Some(f) = fill.get_mut(b) {
-                    if let Some(slot) = binned.get_mut(*f) {
-                        // t < n_tri, which fits in u32 (checked above).
-                        *slot = u32::try_from(t).unwrap_or(u32::MAX);
-                    }
-                    *f += 1;
-                }
-            }
-        }
-    }
-
-    depth.fill(f32::NAN);
-    let body = |first: usize, img: &mut [f32], dep: &mut [f32]| -> Result<()> {
-        let n = dep.len() / width;
-        if n == 0 {
-            return Ok(());
-        }
-        let last = first + n - 1;
-        let (ka, kb) = (first / BIN_ROWS, last / BIN_ROWS);
-        img.fill(f32::NAN);
-        for k in ka..=kb {
-            let (s0, s1) = (
-                start.get(k).copied().unwrap_or(0),
-                start.get(k + 1).copied().unwrap_or(0),
-            );
-            for &t in binned.get(s0..s1).unwrap_or(&[]) {
-                let t = t as usize;
-                let Some(p) = prepared.get(t) else {
-                    continue;
-                };
-                // Visit a triangle once per task: from the first of its bins in range.
-                if (p.r0 as usize / BIN_ROWS).max(ka) != k {
-                    continue;
-                }
-                if let Some(s) = setup(p, mesh, t, width) {
-                    draw(&s, mesh, width, first, img, dep);
-                }
-            }
-        }
-        Ok(())
-    };
-    parallel::for_each_row_chunk_pair(image, depth, width * ch, width, body)?;
     for (m, d) in mask.iter_mut().zip(depth.iter()) {
         *m = u8::from(!d.is_nan());
     }
