@@ -360,7 +360,10 @@ def triangulate_one_thread(size: str) -> Case:
     return _triangulate_case(size, threads=1)
 
 
-# Rendering: the reference view's grid mesh at 1 Mpx (1200 x 900, the full-size camera's
+# Rendering: issue 7's target is <= 100 ms on 2 cores. Measured on the shared 2-core
+# machine at load 10 (three other builds/tests running): 357-367 ms wall, 182 ms CPU in
+# all (2 threads), numpy way 9.8 s (ratio 0.04); not yet shown on an idle machine.
+# The reference view's grid mesh at 1 Mpx (1200 x 900, the full-size camera's
 # views; two triangles per pixel quad) seen from a lenslet's pose: projected vertices
 # p + o s(Z) with a smooth depth field, per-vertex RGB.
 _RENDER_SIZES = {"small": (450, 600), "full": (900, 1200)}

@@ -262,7 +262,10 @@ def test_render_at_the_reference_pose_reproduces_the_reference(reference_camera,
     assert np.isnan(out.depth[~out.mask]).all()
 
 
-#: Measured PSNR (dB), worst lenslet, render of the reference mesh vs its rectified view.
+#: Issue 7's target: PSNR (dB) of the reference mesh rendered at each other lenslet's
+#: camera against that lenslet's rectified view, on the pixels both see. Measured, worst
+#: view: planes 31.13 (view (2, 3)), layered 29.40 (view (0, 0)), spheres 27.99 (view
+#: (2, 3)); the calibration board scene 38.36.
 PSNR_TARGET = 28.0
 
 
