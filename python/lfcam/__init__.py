@@ -14,8 +14,10 @@ from lfcam.depth import DepthResult, depth_from_views, estimate_depth
 from lfcam.errors import CalibrationError, InputError, LfcamError, NumericalError
 from lfcam.io import read_image, read_pfm, read_raw, write_pfm
 from lfcam.lightfield import LightField
+from lfcam.mesh import Mesh, mesh_from_depth
 from lfcam.pattern import make_pattern
 from lfcam.pipeline import CaptureResult, process_capture, rectify
+from lfcam.render import RenderResult, render_view
 from lfcam.simulator import SimConfig, SimulationResult, simulate
 from lfcam.stats import nan_median
 from lfcam.superres import all_in_focus, refocus, super_resolve
@@ -30,7 +32,9 @@ __all__ = [
     "InputError",
     "LfcamError",
     "LightField",
+    "Mesh",
     "NumericalError",
+    "RenderResult",
     "SimConfig",
     "SimulationResult",
     "TriangulationResult",
@@ -42,6 +46,7 @@ __all__ = [
     "estimate_depth",
     "get_num_threads",
     "make_pattern",
+    "mesh_from_depth",
     "nan_median",
     "process_capture",
     "read_image",
@@ -50,6 +55,7 @@ __all__ = [
     "rectify",
     "refocus",
     "remap_bilinear",
+    "render_view",
     "set_num_threads",
     "simulate",
     "super_resolve",

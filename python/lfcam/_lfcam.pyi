@@ -15,6 +15,7 @@ __all__ = [
     "invert_maps",
     "nan_median",
     "place_samples",
+    "rasterize",
     "rectify",
     "remap_bilinear",
     "set_num_threads",
@@ -48,6 +49,15 @@ def rectify(
     out: NDArray[np.float32] | None = None,
 ) -> NDArray[np.float32]:
     """Gain, crop and remap views of raw into (M, H, W[, C]) float32 (NaN: no data)."""
+
+def rasterize(
+    vertices: NDArray[np.float32],
+    colours: NDArray[np.float32],
+    faces: NDArray[np.int32],
+    height: int,
+    width: int,
+) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.uint8]]:
+    """Z-buffer (M, 3) projected vertices (x, y, z), (M, C) colours, (K, 3) faces."""
 
 def nan_median(
     stack: NDArray[np.float32],

@@ -299,6 +299,16 @@ def _add_process(sub: Any) -> None:
         help="also write refocus_<Z>m.png, refocused at these distances in metres",
     )
     p.add_argument("--overwrite", action="store_true", help="redo complete outputs")
+    p.add_argument("--mesh", action="store_true", help="also write mesh.ply (coloured triangles)")
+    p.add_argument(
+        "--novel-view",
+        metavar="TX,TY,TZ[,RX,RY,RZ]",
+        help="write novel_view.png from this pose relative to the reference camera: "
+        "translation in metres, rotation vector in degrees",
+    )
+    p.add_argument(
+        "--orbit", type=int, default=0, metavar="N", help="write N orbit frames and orbit.mp4"
+    )
     p.set_defaults(func=_cmd_process)
 
 
@@ -337,7 +347,7 @@ def _worker_init(cal_path: str, threads: int) -> None:
 
 
 def _process_one(
-    src: str, dst: str, extra: dict[str, Any], save_views: bool
+    src: str, dst: str, extra: dict[str, Any], save_views: bool, novel: Any = None
 ) -> tuple[str, str | None]:
     from .outputs import write_capture
     from .pipeline import process_capture
@@ -352,10 +362,32 @@ def _process_one(
             superres=products.get("superres"),
             refocus=products.get("refocus") or (),
         )
-        write_capture(dst, res, cal, extra=extra, save_views=save_views)
+        write_capture(dst, res, cal, extra=extra, save_views=save_views, novel=novel)
         return src, None
     except (LfcamError, OSError, ValueError) as exc:
         return src, str(exc)
+
+
+def _novel_options(args: argparse.Namespace, cal: Any) -> Any:
+    """--mesh / --novel-view / --orbit as :class:`lfcam.render.NovelViewOptions`."""
+    import math
+
+    from .render import NovelViewOptions, parse_pose
+
+    if args.orbit < 0:
+        raise InputError(f"--orbit: must be >= 0, got {args.orbit}")
+    pose = None
+    if args.novel_view is not None:
+        try:
+            pose = parse_pose(args.novel_view)
+        except InputError as exc:
+            raise InputError(f"--novel-view: {exc}") from None
+    opts = NovelViewOptions(mesh=args.mesh, pose=pose, orbit=args.orbit)
+    if (pose is not None or opts.orbit) and not (cal.metric and math.isfinite(cal.pattern_pitch)):
+        raise InputError(
+            "--novel-view/--orbit: need a metric calibration with a known pattern pitch"
+        )
+    return opts
 
 
 def _cmd_process(args: argparse.Namespace) -> int:
@@ -372,6 +404,7 @@ def _cmd_process(args: argparse.Namespace) -> int:
             raise InputError(f"--refocus: distances must be beyond Z_c = {cal.z_c:.3f} m: {bad}")
     elif args.refocus:
         raise InputError("--refocus: the calibration is relative (no Z_c): no metric focus")
+    novel = _novel_options(args, cal)
     pairs = _find_captures(args.input, args.output)
     todo = [(s, d) for s, d in pairs if args.overwrite or not (d / "result.json").is_file()]
     skipped = len(pairs) - len(todo)
@@ -394,7 +427,7 @@ def _cmd_process(args: argparse.Namespace) -> int:
     if jobs == 1:
         _WORKER.update(cal=cal, threads=threads)
         for s, d in todo:
-            src, err = _process_one(str(s), str(d), extra, args.save_views)
+            src, err = _process_one(str(s), str(d), extra, args.save_views, novel)
             if err:
                 failures.append((src, err))
             bar.update(1)
@@ -412,7 +445,8 @@ def _cmd_process(args: argparse.Namespace) -> int:
             initargs=(str(args.calibration), threads),
         ) as ex:
             futs = [
-                ex.submit(_process_one, str(s), str(d), extra, args.save_views) for s, d in todo
+                ex.submit(_process_one, str(s), str(d), extra, args.save_views, novel)
+                for s, d in todo
             ]
             for f in futs:
                 src, err = f.result()

@@ -238,8 +238,9 @@ def fill_parallax(
     value, never a mixture, and the colour weight picks the side the pixel belongs
     to. Unknown pixels still unknown after that get a second, wider pass (twice the
     radius and colour tolerance, weak weights on the first pass's results); an
-    unreliable pixel with nothing reliable around keeps its value. Low confidence alone (few views see a
-    pixel, as near the edge of a lenslet's image circle) is not a reason to refill.
+    unreliable pixel with nothing reliable around keeps its value. Low confidence
+    alone (few views see a pixel, as near the edge of a lenslet's image circle) is
+    not a reason to refill.
     Runs in the Rust core (``lfcam._lfcam.weighted_median_fill``).
 
     Parameters

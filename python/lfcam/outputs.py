@@ -28,6 +28,7 @@ from .pipeline import CaptureResult
 if TYPE_CHECKING:
     from .depth import DepthResult
     from .lightfield import LightField
+    from .render import NovelViewOptions
 
 __all__ = [
     "colour_depth",
@@ -162,13 +163,16 @@ def write_capture(
     *,
     extra: dict[str, Any] | None = None,
     save_views: bool = False,
+    novel: NovelViewOptions | None = None,
 ) -> Path:
     """Write one capture's folder atomically; returns its path.
 
     Files: ``depth.tiff`` (float32 m, NaN unknown), ``depth.png`` (preview with
     a colour bar), ``confidence.tiff``, ``points.ply`` (coloured), ``result.json``
     and, with ``save_views``, ``views/view_RR_CC.png``; ``superres.png`` and
-    ``refocus_<Z>m.png`` (16-bit RGB, display gamma 1/2.2) when the result has them.
+    ``refocus_<Z>m.png`` (16-bit RGB, display gamma 1/2.2) when the result has them;
+    with ``novel``, the mesh and novel views it asks for
+    (:func:`lfcam.render.write_novel_views`).
     """
     out = Path(out_dir)
     with _atomic_folder(out) as tmp:
@@ -211,6 +215,11 @@ def write_capture(
             else None,
             "points": len(pts),
         }
+        novel_info: dict[str, Any] = {}
+        if novel is not None and novel.any:
+            from .render import write_novel_views
+
+            novel_info = {"novel_views": write_novel_views(tmp, result, cal, novel)}
         info = {
             "source": result.source,
             "depth_units": "m" if d.depth is not None else "relative (t = s Z_c / Z_b)",
@@ -219,6 +228,7 @@ def write_capture(
             "reference": list(cal.reference_rc),
             "timings_s": result.timings,
             "statistics": stats,
+            **novel_info,
             **(extra or {}),
         }
         (tmp / "result.json").write_text(json.dumps(info, indent=2, default=str))
