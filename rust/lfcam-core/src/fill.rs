@@ -172,8 +172,8 @@ pub fn weighted_median_fill(
                 let (Some(&vq), Some(&wq)) = (values.get(q), weights.get(q)) else {
                     continue;
                 };
-                // `!(wq > 0)` also rejects NaN weights.
-                if !vq.is_finite() || !(wq > 0.0) {
+                // NaN and non-positive weights are not candidates.
+                if !vq.is_finite() || wq.is_nan() || wq <= 0.0 {
                     continue;
                 }
                 let gq = guide.get(q * channels..(q + 1) * channels).unwrap_or(&[]);
@@ -188,7 +188,7 @@ pub fn weighted_median_fill(
                     total += wgt;
                 }
             }
-            if cand.is_empty() || !(total > 0.0) {
+            if cand.is_empty() || total.is_nan() || total <= 0.0 {
                 *vo = f32::NAN;
                 *so = 0.0;
                 continue;
