@@ -28,7 +28,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from lfcam.flow import FlowParams, dis_flow, prepare
+from lfcam.flow import FlowParams, dis_flow, end_point_error, prepare
 from lfcam.io import read_flo
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "middlebury_flow_other"
@@ -56,11 +56,6 @@ def load(data: Path, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return a, b, gt
 
 
-def epe(flow: np.ndarray, gt: np.ndarray) -> float:
-    ok = np.isfinite(gt).all(-1)
-    return float(np.mean(np.hypot(*np.moveaxis(flow[ok] - gt[ok], -1, 0))))
-
-
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=DATA)
@@ -85,7 +80,7 @@ def main() -> int:
                 t0 = time.perf_counter()
                 flow = fn(a, b)
                 times.append(time.perf_counter() - t0)
-            errs.append(epe(flow, gt))
+            errs.append(end_point_error(flow, gt))
         cells = "".join(f"{e:12.3f}" for e in errs)
         ms = 1000 * statistics.median(times)
         print(f"{name:26}{cells}{np.mean(errs):8.3f}{ms:8.1f}", flush=True)

@@ -11,16 +11,11 @@ import pytest
 
 import lfcam
 from lfcam.depth import DEPTH_FLOW
-from lfcam.flow import dis_flow, prepare
+from lfcam.flow import dis_flow, end_point_error, prepare
 from lfcam.io import read_flo
 from lfcam.pattern import procedural_texture
 
 MIDDLEBURY = Path(__file__).resolve().parents[2] / "shared" / "data" / "middlebury_flow_other"
-
-
-def _epe(flow, gt):
-    ok = np.isfinite(gt).all(-1)
-    return float(np.mean(np.hypot(*np.moveaxis(flow[ok] - gt[ok], -1, 0))))
 
 
 def _fourier_shift(img, dx, dy):
@@ -65,13 +60,13 @@ def _middlebury(name):
 )
 def test_depth_flow_against_middlebury_ground_truth(name, bound) -> None:
     a, b, gt = _middlebury(name)
-    ours = _epe(
+    ours = end_point_error(
         dis_flow(prepare(a.astype(np.float32)), prepare(b.astype(np.float32)), DEPTH_FLOW), gt
     )
     grey = [cv2.cvtColor(np.ascontiguousarray(x), cv2.COLOR_RGB2GRAY) for x in (a, b)]
     medium = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM).calc(*grey, None)
     assert ours <= bound, f"{name}: EPE {ours:.3f} px"
-    assert ours <= _epe(medium, gt) + 0.01, f"{name}: EPE {ours:.3f} vs MEDIUM"
+    assert ours <= end_point_error(medium, gt) + 0.01, f"{name}: EPE {ours:.3f} vs MEDIUM"
 
 
 def test_read_flo_errors(tmp_path) -> None:

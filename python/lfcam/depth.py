@@ -138,8 +138,8 @@ def _flows_and_seen(
     margin: int | None = None,
     backward: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`compute_flows`, and where at least one other view sees the reference
-    pixel (its forward flow lands inside that view's data, consistent or not).
+    """:func:`compute_flows`, and per reference pixel the number of other views that
+    see it (its forward flow lands inside that view's data, consistent or not), uint8.
 
     ``margin``: compute the flows only in the bounding box of the reference's data
     grown by this many px (content moves at most about that far), not over the whole
@@ -412,7 +412,7 @@ def depth_from_views(
     # Content moves by o_i s; |s| <= 2 covers a scene from half the board's
     # distance to infinity on the reference camera, and light fields' |s| of a few px.
     margin = int(np.ceil(2.0 * np.abs(offsets).max())) + 16
-    flows, weights, seen = _flows_and_seen(
+    flows, weights, n_seen = _flows_and_seen(
         views, int(reference), flow, 0.75, threads, margin=margin, backward=backward
     )
     t1 = time.perf_counter()
@@ -427,8 +427,8 @@ def depth_from_views(
             guide_image(views[int(reference)]),
             residual=tri.residual,
             n_used=tri.n_used,
-            n_seen=seen,
-            where=seen > 0,
+            n_seen=n_seen,
+            where=n_seen > 0,
         )
         timings["fill"] = time.perf_counter() - t2
     return DepthResult(

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-__all__ = ["FlowParams", "dis_flow", "normalize", "prepare"]
+__all__ = ["FlowParams", "dis_flow", "end_point_error", "normalize", "prepare"]
 
 
 @dataclass(frozen=True)
@@ -93,3 +93,10 @@ def dis_flow(
     if init is not None:
         return dis.calc(a, b, np.ascontiguousarray(init, dtype=np.float32))
     return dis.calc(a, b, None)
+
+
+def end_point_error(flow: np.ndarray, truth: np.ndarray) -> float:
+    """Mean end-point error (px) of ``flow`` against ``truth`` (both ``(H, W, 2)``)
+    over the pixels where the truth is known (finite), as Middlebury scores flow."""
+    ok = np.isfinite(truth).all(-1)
+    return float(np.mean(np.hypot(*np.moveaxis(flow[ok] - truth[ok], -1, 0))))

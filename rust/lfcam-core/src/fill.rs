@@ -225,6 +225,23 @@ mod tests {
         }
     }
 
+    /// Runs the kernel into fresh outputs: (values, support).
+    fn run(
+        values: &[f32],
+        weights: &[f32],
+        guide: &[f32],
+        channels: usize,
+        todo: &[u8],
+        size: (usize, usize),
+        params: &FillParams,
+    ) -> Result<(Vec<f32>, Vec<f32>)> {
+        let (mut out, mut sup) = (vec![0f32; values.len()], vec![0f32; values.len()]);
+        weighted_median_fill(
+            values, weights, guide, channels, todo, size, params, &mut out, &mut sup,
+        )?;
+        Ok((out, sup))
+    }
+
     /// A step edge in the guide; the values left of it are 1, right of it 5, with a
     /// band of wrong, unconfident values around the edge: the fill restores the step.
     #[test]
@@ -246,19 +263,7 @@ mod tests {
                 }
             }
         }
-        let (mut out, mut sup) = (vec![0f32; h * w], vec![0f32; h * w]);
-        weighted_median_fill(
-            &values,
-            &weights,
-            &guide,
-            1,
-            &todo,
-            (h, w),
-            &params(4),
-            &mut out,
-            &mut sup,
-        )
-        .unwrap();
+        let (out, sup) = run(&values, &weights, &guide, 1, &todo, (h, w), &params(4)).unwrap();
         for y in 0..h {
             for x in 0..w {
                 let want = if x < 10 { 1.0 } else { 5.0 };
@@ -291,19 +296,7 @@ mod tests {
             sigma_colour: 0.3,
             sigma_space: 2.0,
         };
-        let (mut out, mut sup) = (vec![0f32; h * w], vec![0f32; h * w]);
-        weighted_median_fill(
-            &values,
-            &weights,
-            &guide,
-            2,
-            &todo,
-            (h, w),
-            &p,
-            &mut out,
-            &mut sup,
-        )
-        .unwrap();
+        let (out, sup) = run(&values, &weights, &guide, 2, &todo, (h, w), &p).unwrap();
         for y in 0..h as isize {
             for x in 0..w as isize {
                 let pi = (y * w as isize + x) as usize;
@@ -345,49 +338,15 @@ mod tests {
         let values = vec![f32::NAN; 9];
         let ones = vec![1f32; 9];
         let todo = vec![1u8; 9];
-        let (mut out, mut sup) = (vec![0f32; 9], vec![0f32; 9]);
-        weighted_median_fill(
-            &values,
-            &ones,
-            &ones,
-            1,
-            &todo,
-            (h, w),
-            &params(1),
-            &mut out,
-            &mut sup,
-        )
-        .unwrap();
+        let (out, sup) = run(&values, &ones, &ones, 1, &todo, (h, w), &params(1)).unwrap();
         assert!(out.iter().all(|v| v.is_nan()) && sup.iter().all(|&s| s == 0.0));
-        let err = weighted_median_fill(
-            &values,
-            &ones,
-            &ones[..8],
-            1,
-            &todo,
-            (h, w),
-            &params(1),
-            &mut out,
-            &mut sup,
-        )
-        .unwrap_err();
+        let err = run(&values, &ones, &ones[..8], 1, &todo, (h, w), &params(1)).unwrap_err();
         assert!(err.to_string().starts_with("guide:"), "{err}");
         let bad = FillParams {
             sigma_colour: f32::NAN,
             ..params(1)
         };
-        let err = weighted_median_fill(
-            &values,
-            &ones,
-            &ones,
-            1,
-            &todo,
-            (h, w),
-            &bad,
-            &mut out,
-            &mut sup,
-        )
-        .unwrap_err();
+        let err = run(&values, &ones, &ones, 1, &todo, (h, w), &bad).unwrap_err();
         assert!(err.to_string().starts_with("sigma_colour:"), "{err}");
     }
 }
