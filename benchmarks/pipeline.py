@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import resource
 import statistics
 import subprocess
 import sys
@@ -68,17 +67,21 @@ def main() -> None:
 
 
 def _process_peak_rss(capture: Path, workdir: Path, cal: lfcam.Calibration) -> float:
-    """Peak resident memory (MB) of one capture processed in a fresh interpreter."""
+    """Peak resident memory (MB) of one capture processed in a fresh interpreter.
+
+    The child reports its own peak (``ru_maxrss`` of ``RUSAGE_SELF``): the parent's
+    ``RUSAGE_CHILDREN`` figure is the maximum over every child it ever waited for,
+    which includes the simulator's and calibration's workers.
+    """
     calf = workdir / "bench.lfcal"
     cal.save(calf)
     code = (
-        "import lfcam; from lfcam.pipeline import process_capture;"
-        f"process_capture({str(capture)!r}, lfcam.Calibration.load({str(calf)!r}))"
+        "import resource, lfcam; from lfcam.pipeline import process_capture;"
+        f"process_capture({str(capture)!r}, lfcam.Calibration.load({str(calf)!r}));"
+        "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)"
     )
-    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-    subprocess.run([sys.executable, "-c", code], check=True)
-    after = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-    return max(before, after) / 1024.0  # Linux: kB
+    out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True)
+    return int(out.stdout.split()[-1]) / 1024.0  # Linux: kB
 
 
 if __name__ == "__main__":
