@@ -22,6 +22,7 @@ from .flow import FlowParams, dis_flow, prepare
 __all__ = [
     "DEPTH_FLOW",
     "FILL_MAX_RESIDUAL",
+    "FILL_MIN_SUPPORT",
     "FILL_MIN_USED",
     "DepthResult",
     "compute_flows",
@@ -41,6 +42,15 @@ FILL_MAX_RESIDUAL = 0.2
 #: layered scenes 3.9% -> 2.0% (3 x 4) and 6.2% -> 2.0% (3 x 3) of pixels off by > 5%.
 #: (Refilling by low confidence instead broke whole surfaces seen by few views.)
 FILL_MIN_USED = 0.75
+#: A pixel whose window holds less reliable weight than this (its ``support``, the
+#: total weight over the window's grid positions) is not filled from it: its median
+#: would come from neighbours of another colour (the colour weight is tiny but a
+#: median only sees relative weights), e.g. the foreground for a background pixel
+#: whose own neighbours are all unreliable. It goes to the wider second pass instead.
+#: Measured (``benchmarks/hci.py``, antinous): 5 x 5 BadPix0.07 / MSE x 100
+#: 7.5% / 8.85 -> 7.3% / 4.4 (a 690 px block of background above the head had taken
+#: the head's parallax); 3 x 4 and 3 x 3 unchanged (9.3% / 4.64, 11.7% / 5.56).
+FILL_MIN_SUPPORT = 0.002
 
 #: DIS parameters for depth: fine patches, dense stride, variational refinement, at
 #: full resolution (``benchmarks/flow_tuning.py``: Middlebury "other" mean end-point
@@ -221,6 +231,7 @@ def fill_parallax(
     where: np.ndarray | None = None,
     max_residual: float = FILL_MAX_RESIDUAL,
     min_used: float = FILL_MIN_USED,
+    min_support: float = FILL_MIN_SUPPORT,
     threshold: float | None = None,
     radius: int = 20,
     stride: int = 2,
@@ -236,9 +247,11 @@ def fill_parallax(
     similarity to the pixel in ``guide`` (Gaussian, ``sigma_colour`` in Lab units)
     and by its distance (Gaussian, ``sigma = radius``): a median takes one side's
     value, never a mixture, and the colour weight picks the side the pixel belongs
-    to. Unknown pixels still unknown after that get a second, wider pass (twice the
-    radius and colour tolerance, weak weights on the first pass's results); an
-    unreliable pixel with nothing reliable around keeps its value. Low confidence
+    to. A pixel whose window holds almost no reliable weight of its own colour
+    (``support < min_support``) is not filled from it. Pixels unknown after that
+    (unknown ones, and those) get a second, wider pass (twice the radius and colour
+    tolerance, weak weights on the first pass's results); an unreliable pixel with
+    nothing reliable around keeps its value. Low confidence
     alone (few views see a pixel, as near the edge of a lenslet's image circle) is
     not a reason to refill.
     Runs in the Rust core (``lfcam._lfcam.weighted_median_fill``).
@@ -257,8 +270,8 @@ def fill_parallax(
     where : (H, W) bool array, optional
         Pixels that may be filled (default: all): where the reference and at least
         one other view see, so that nothing is extrapolated beyond the data.
-    max_residual, min_used : float
-        See :data:`FILL_MAX_RESIDUAL`, :data:`FILL_MIN_USED`.
+    max_residual, min_used, min_support : float
+        See :data:`FILL_MAX_RESIDUAL`, :data:`FILL_MIN_USED`, :data:`FILL_MIN_SUPPORT`.
     threshold : float, optional
         Also refill pixels whose confidence is below this.
     radius, stride : int
@@ -306,9 +319,13 @@ def fill_parallax(
     out, support = _lfcam.weighted_median_fill(
         s, weights, g, todo, int(radius), int(stride), float(sigma_colour), float(radius)
     )
-    # A second, wider pass only for unknown pixels: an unreliable value with nothing
-    # reliable nearby is a better guess than values from further away (measured).
-    missing = (~np.isfinite(out) & ~np.isfinite(s) & allowed).astype(np.uint8)
+    # Too little reliable weight of the pixel's own colour: the median would be the
+    # other side's. Such pixels join the unknown ones in the second pass.
+    weak = (todo > 0) & (support < min_support)
+    out = np.where(weak, np.nan, out)
+    # A second, wider pass only for those and for unknown pixels: an unreliable value
+    # with nothing reliable nearby is a better guess than values from further away.
+    missing = (~np.isfinite(out) & (~np.isfinite(s) | weak) & allowed).astype(np.uint8)
     if missing.any():
         w2 = np.where(np.isfinite(out), np.maximum(weights, 0.1), 0.0).astype(np.float32)
         out2, support2 = _lfcam.weighted_median_fill(
