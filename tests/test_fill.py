@@ -82,6 +82,30 @@ def test_fill_restores_a_depth_edge_at_the_colour_edge() -> None:
     assert (c[band] < 0.85).all()
 
 
+def test_a_pixel_without_reliable_neighbours_of_its_colour_looks_further() -> None:
+    """A background band whose own-coloured neighbours within ``radius`` are all
+    unreliable must not take the foreground's parallax (a median sees only relative
+    weights, so tiny colour weights would still decide): it reaches its own colour in
+    the wider second pass. Without ``min_support`` it takes the foreground's 1.5."""
+    h, w, radius = 30, 100, 10
+    xx = np.arange(w)[None, :].repeat(h, 0)
+    # Lightness 10 Lab units apart: a colour weight of exp(-5.6), small but not 0.
+    image = np.where(xx < 30, 0.6, 0.5).astype(np.float32)[..., None].repeat(3, -1)
+    image[0, 0] = 1.0  # guide_image scales the 99.5th percentile to 1
+    truth = np.where(xx < 30, 1.5, -0.5).astype(np.float32)
+    band = (xx >= 30) & (xx < 45)  # background, all unreliable, 15 px > radius wide
+    s = np.where(band, 0.5, truth).astype(np.float32)
+    conf = np.where(band, 0.0, 0.9).astype(np.float32)
+    guide = guide_image(image)
+    out, _, filled = fill_parallax(s, conf, guide, threshold=0.5, radius=radius)
+    assert filled[band].all()
+    np.testing.assert_array_equal(out[band], -0.5)
+    np.testing.assert_array_equal(out[~band], truth[~band])
+    # The old behaviour, for contrast: the pixels next to the edge took 1.5.
+    old, _, _ = fill_parallax(s, conf, guide, threshold=0.5, radius=radius, min_support=0.0)
+    assert (old[:, 30:35] == 1.5).all()
+
+
 def test_fill_stays_inside_where_and_keeps_unfillable_values() -> None:
     h, w = 20, 20
     s = np.full((h, w), 0.5, np.float32)
