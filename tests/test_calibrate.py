@@ -220,3 +220,50 @@ def test_board_capture_of_the_wrong_thing(small_cal, tmp_path, capsys) -> None:
     for p in (cal / "board_1.00m").glob("*.png"):
         lfcam.io.write_image(p, scene)
     _fails(cal, tmp_path, capsys, "board_1.00m")
+
+
+# --------------------------------------------------------------------------
+# The board's shift per view must fit the lenslet lattice (a flow on a large
+# shift can lock onto a wrong match: the full-size camera's far corner view at
+# 0.7 m once measured (-2, -51) px instead of (52, -19), and Z_c came out 20% off).
+# --------------------------------------------------------------------------
+def _lattice_shifts(grid=(3, 4), ref=5, a=(25.8, 0.1), b=(0.2, 19.4)):
+    R, C = grid
+    rows, cols = np.divmod(np.arange(R * C), C)
+    dc, dr = cols - cols[ref], rows - rows[ref]
+    return dc[:, None] * np.array(a) + dr[:, None] * np.array(b)
+
+
+def test_lattice_check_finds_the_wrong_view() -> None:
+    from lfcam.calibrate import _lattice_check
+
+    P = _lattice_shifts()
+    P += np.random.default_rng(0).normal(0, 0.3, P.shape)  # lens distortion, noise
+    P[5] = 0.0
+    pred, wrong = _lattice_check(P, (3, 4), 5)
+    assert not wrong.any()
+    np.testing.assert_allclose(pred, _lattice_shifts(), atol=0.5)
+    bad = P.copy()
+    bad[3] = (-2.2, -51.3)
+    pred, wrong = _lattice_check(bad, (3, 4), 5)
+    assert np.nonzero(wrong)[0].tolist() == [3]
+    np.testing.assert_allclose(pred[3], _lattice_shifts()[3], atol=0.5)
+
+
+def test_board_shift_measured_again_from_the_lattice() -> None:
+    """A shift too large for a plain flow start is found from the lattice's guess."""
+    from lfcam.calibrate import _measure_parallax
+    from lfcam.flow import FlowParams
+
+    rng = np.random.default_rng(3)
+    h, w, shift = 240, 320, (61.25, -23.5)
+    big = cv2.GaussianBlur(rng.random((h + 100, w + 200)).astype(np.float32), (0, 0), 1.5)
+    ref = big[50 : 50 + h, 100 : 100 + w]
+    # ref(p) = moved(p + shift): the flow from the reference is +shift.
+    M = np.float32([[1, 0, 100 - shift[0]], [0, 1, 50 - shift[1]]])
+    moved = cv2.warpAffine(big, M, (w, h), flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP)
+    views = np.stack([ref, moved])[..., None].repeat(3, -1)
+    masks = np.ones((2, h, w), bool)
+    P, cover, _ = _measure_parallax(views, masks, 0, FlowParams(), init={1: np.array(shift) + 2})
+    np.testing.assert_allclose(P[1], shift, atol=0.05)
+    assert cover[1] > 0.5

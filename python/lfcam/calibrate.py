@@ -275,28 +275,40 @@ def fit_depth_model(
 
 
 def _measure_parallax(
-    views: np.ndarray, masks: np.ndarray, ref: int, params: FlowParams
+    views: np.ndarray,
+    masks: np.ndarray,
+    ref: int,
+    params: FlowParams,
+    init: dict[int, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Median flow from the reference to each view (rectified board images).
 
+    ``init`` maps a view index to an expected shift ``(2,)`` that starts its flow
+    (and restricts the measurement to those views; the others get NaN).
     Returns the parallax ``(N, 2)``, the valid fraction ``(N,)`` and the flows'
     robust spread ``(N,)``.
     """
     N = views.shape[0]
     a = prepare(views[ref])
-    out = np.zeros((N, 2))
+    out = np.full((N, 2), np.nan) if init else np.zeros((N, 2))
     cover = np.zeros(N)
     spread = np.zeros(N)
     for i in range(N):
         if i == ref:
+            out[i] = 0.0
             cover[i] = 1.0
+            continue
+        if init and i not in init:
             continue
         both = (
             masks[i] & masks[ref] & np.isfinite(views[i]).all(-1) & np.isfinite(views[ref]).all(-1)
         )
         both = cv2.erode(both.astype(np.uint8), np.ones((9, 9), np.uint8)) > 0
-        f = dis_flow(a, prepare(views[i]), params)
-        b = dis_flow(prepare(views[i]), a, params)
+        start = None
+        if init:
+            start = np.broadcast_to(np.asarray(init[i], np.float32), (*a.shape[:2], 2))
+        f = dis_flow(a, prepare(views[i]), params, init=start)
+        b = dis_flow(prepare(views[i]), a, params, init=None if start is None else -start)
         # Forward-backward check: follow the flow and come back.
         grid = np.stack(np.meshgrid(np.arange(f.shape[1]), np.arange(f.shape[0])), -1).astype(
             np.float32
@@ -313,6 +325,47 @@ def _measure_parallax(
         out[i] = np.median(f[good], axis=0)
         spread[i] = float(np.median(np.abs(f[good] - out[i]))) * 1.4826
     return out, cover, spread
+
+
+#: A view's board shift may differ from the lenslet lattice's prediction by this
+#: much (px, or this share of the largest shift, whichever is larger) before it is
+#: measured again from the prediction (:func:`_lattice_check`).
+LATTICE_TOLERANCE_PX = 3.0
+LATTICE_TOLERANCE_REL = 0.1
+
+
+def _lattice_check(P: np.ndarray, grid: tuple[int, int], ref: int) -> tuple[np.ndarray, np.ndarray]:
+    """Views whose measured board shift breaks the lenslet lattice.
+
+    A fronto-parallel board shifts view i by ``o_i s``, and on a lenslet grid ``o_i``
+    is nearly affine in the view's column and row: ``P_i ~ A dc_i + B dr_i``. Fits the
+    two 2-vectors by least squares, dropping the worst view while it is off by more
+    than the tolerance (flow on a large shift can lock onto a wrong match: the
+    full-size camera's far corner view at 0.7 m measured (-2, -51) px instead of
+    (52, -19), and the whole depth model went wrong). Returns the prediction
+    ``(N, 2)`` and the outliers ``(N,)`` (all False with too few views to tell).
+    """
+    R, C = grid
+    rows, cols = np.divmod(np.arange(R * C), C)
+    X = np.column_stack([cols - cols[ref], rows - rows[ref]]).astype(np.float64)
+    finite = np.isfinite(P).all(1)
+    inl = finite & (np.arange(len(P)) != ref)
+    out = ~finite
+    out[ref] = False
+    pred = np.zeros_like(P)
+    tol = max(LATTICE_TOLERANCE_PX, LATTICE_TOLERANCE_REL * float(np.nanmax(np.abs(P))))
+    while inl.sum() >= 4:
+        coef, *_ = np.linalg.lstsq(X[inl], P[inl], rcond=None)
+        pred = X @ coef
+        err = np.where(finite, np.linalg.norm(P - pred, axis=1), np.inf)
+        err[ref] = 0.0
+        worst = int(np.argmax(np.where(inl, err, -1.0)))
+        if err[worst] <= tol:
+            out = ~inl & (err > tol)
+            out[ref] = False
+            return pred, out
+        inl[worst] = False
+    return pred, np.zeros(len(P), bool)
 
 
 @dataclass
@@ -532,6 +585,21 @@ def run_calibration(
         views = np.stack([remap(_crop(mean, layout.crops[i]), warps[i]) for i in range(N)])
         views[~masks] = np.nan
         P, cover, spread = _measure_parallax(views, masks, ref, params)
+        pred, wrong = _lattice_check(P, grid, ref)
+        if wrong.any():
+            redo = {int(i): pred[i] for i in np.nonzero(wrong)[0]}
+            say(f"parallax at {z:g} m: measuring views {sorted(redo)} again from the lattice")
+            P2, cover2, spread2 = _measure_parallax(views, masks, ref, params, init=redo)
+            for i in redo:
+                P[i], cover[i], spread[i] = P2[i], cover2[i], spread2[i]
+            _, still = _lattice_check(P, grid, ref)
+            if still.any():
+                bad = [divmod(int(i), C) for i in np.nonzero(still)[0]]
+                raise CalibrationError(
+                    f"{inputs.boards[z][0].parent}: the board's shift in views {bad} does"
+                    " not fit the lenslet grid (is the board flat, fronto-parallel and"
+                    " filling every view?)"
+                )
         if np.isnan(P).any():
             bad = [divmod(int(i), C) for i in np.nonzero(np.isnan(P).any(1))[0]]
             raise CalibrationError(
