@@ -158,7 +158,6 @@ def _flows_and_seen(
     """
     from .warp import remap_bilinear
 
-    params = params or DEPTH_FLOW
     N, H, W = views.shape[:3]
     valid = np.isfinite(views).all(-1) if views.ndim == 4 else np.isfinite(views)
     flows = np.full((N, H, W, 2), np.nan, np.float32)
@@ -176,17 +175,20 @@ def _flows_and_seen(
         ]
     sub = views[(slice(None), *win)]
     sub_valid = valid[(slice(None), *win)]
-    prepared = [prepare(v) for v in sub]
     grid = _grid(*sub.shape[1:3])
+    params = params or DEPTH_FLOW
+    ref_prepared = prepare(sub[reference])
 
     def one(i: int) -> None:
-        f = dis_flow(prepared[reference], prepared[i], params)
+        # Each worker prepares its own view (OpenCV and numpy release the GIL).
+        view_prepared = prepare(sub[i])
+        f = dis_flow(ref_prepared, view_prepared, params)
         target = grid + f
         lands = remap_bilinear(sub_valid[i].astype(np.float32), target)
         inside = sub_valid[reference] & (lands > 0.999)
         ok = inside
         if backward:
-            b = dis_flow(prepared[i], prepared[reference], params)
+            b = dis_flow(view_prepared, ref_prepared, params)
             back = remap_bilinear(b, target)
             ok = inside & (np.hypot(*np.moveaxis(f + back, -1, 0)) < fb_threshold)
         flows[(i, *win)] = np.where(ok[..., None], f, np.nan)
@@ -378,7 +380,7 @@ def depth_from_views(
     reference : int
         Reference view index.
     flow : FlowParams, optional
-        DIS parameters.
+        DIS parameters (default :data:`DEPTH_FLOW`).
     threads : int
         Concurrent flows.
     fill : bool
