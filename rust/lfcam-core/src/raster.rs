@@ -26,6 +26,9 @@
 //! 2 M triangles of half a pixel each: per-triangle work dominates, so binning them by
 //! rows first cost more than it saved), and the result equals the serial one exactly,
 //! ties included (a later triangle wins only when strictly nearer, as in one pass).
+//! Before that, each vertex is set up once, in parallel (snapped position, validity,
+//! `1/z`): a grid mesh shares a vertex among six triangles, and most triangles are
+//! then rejected by their bounding box from three indexed loads and a few shifts.
 
 use rayon::prelude::*;
 
@@ -114,6 +117,8 @@ const VERTICES_PER_TASK: usize = 64 * 1024;
 
 /// [`Vertex::new`] of every vertex, in lfcam's pool when there are many.
 fn project_vertices(vertices: &[[f32; 3]], threads: usize) -> Result<Vec<Vertex>> {
+    // (Collecting a parallel iterator instead, which skips this fill, measured 1.17x
+    // slower on 2 threads.)
     let mut out = vec![Vertex::UNUSABLE; vertices.len()];
     let body = |(o, v): (&mut [Vertex], &[[f32; 3]])| {
         for (o, v) in o.iter_mut().zip(v) {
@@ -196,12 +201,13 @@ fn draw_range(
     let (w_last, h_last) = (width as i32 - 1, height as i32 - 1);
     let faces = mesh.faces.get(range).unwrap_or_default();
     for face in faces {
-        let vertex = |k: usize| {
-            usize::try_from(face[k])
+        let vertex = |vi: i32| {
+            usize::try_from(vi)
                 .ok()
                 .and_then(|i| verts.get(i).map(|v| (i, *v)))
         };
-        let (Some((i0, v0)), Some((i1, v1)), Some((i2, v2))) = (vertex(0), vertex(1), vertex(2))
+        let [f0, f1, f2] = *face;
+        let (Some((i0, v0)), Some((i1, v1)), Some((i2, v2))) = (vertex(f0), vertex(f1), vertex(f2))
         else {
             continue;
         };
@@ -248,9 +254,9 @@ fn draw_range(
         let inv_area = 1.0 / area as f64;
         let [iz0, iz1, iz2] = inv_z;
         let (ci, ri) = (i64::from(c0), i64::from(r0));
-        let mut start = [0i64; 3];
-        for k in 0..3 {
-            start[k] = base[k] + step_x[k] * ci + step_y[k] * ri;
+        let mut start = base;
+        for ((e, sx), sy) in start.iter_mut().zip(&step_x).zip(&step_y) {
+            *e += sx * ci + sy * ri;
         }
         for r in r0..=r1 {
             let row = r as usize * width;
@@ -287,12 +293,12 @@ fn draw_range(
                         }
                     }
                 }
-                for k in 0..3 {
-                    e[k] += step_x[k];
+                for (e, s) in e.iter_mut().zip(&step_x) {
+                    *e += s;
                 }
             }
-            for k in 0..3 {
-                start[k] += step_y[k];
+            for (e, s) in start.iter_mut().zip(&step_y) {
+                *e += s;
             }
         }
     }
@@ -489,6 +495,20 @@ mod tests {
         )
         .unwrap();
         (img, dep, mask)
+    }
+
+    #[test]
+    fn pixel_rounding_matches_euclidean_division() {
+        let s = SUBPIXEL as i32;
+        let edge = [(1 << 28) - 1, 1 << 28, -(1 << 28), -(1 << 28) + 1];
+        for v in (-5000..5000).chain(edge) {
+            assert_eq!(floor_px(v), v.div_euclid(s), "{v}");
+            assert_eq!(
+                ceil_px(v),
+                v.div_euclid(s) + i32::from(v.rem_euclid(s) != 0),
+                "{v}"
+            );
+        }
     }
 
     #[test]
