@@ -491,9 +491,11 @@ def shift_and_add_vs_add_at(size: str) -> Case:
     )
 
 
-# Rendering: issue 7's target is <= 100 ms on 2 cores. Measured on the shared 2-core
-# machine at load 10 (three other builds/tests running): 357-367 ms wall, 182 ms CPU in
-# all (2 threads), numpy way 9.8 s (ratio 0.04); not yet shown on an idle machine.
+# Rendering: issue 7's target is <= 100 ms on 2 cores. Before the per-vertex set-up:
+# 105 ms on an idle machine; at load 7, 285 ms wall vs numpy 8.76 s (ratio 0.033), CPU
+# 172 ms (2 threads) / 152 ms (1 thread). After (same machine, load 9-11): 254 ms wall vs
+# numpy 9.59 s (ratio 0.026), CPU 103 ms (2 threads) / 90 ms (1 thread); not yet shown
+# on an idle machine.
 # The reference view's grid mesh at 1 Mpx (1200 x 900, the full-size camera's
 # views; two triangles per pixel quad) seen from a lenslet's pose: projected vertices
 # p + o s(Z) with a smooth depth field, per-vertex RGB.
