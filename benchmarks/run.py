@@ -420,6 +420,10 @@ def _sr_inputs(size: str) -> dict[str, Any]:
     return {"raw": raw, "cal": cal, "parallax": s}
 
 
+# super_resolve 2x: issue 6's target is <= 1.5 s on 2 cores; not met yet. Idle machine
+# before this work: 8154 ms. Same run, main's build against branch sr's, alternating
+# processes at load 10-17 on the shared 2-core machine: wall 31.4 / 28.3 s -> 16.5 /
+# 15.7 s, CPU 14.8 / 14.0 s -> 8.0 / 7.8 s (about 1.8x less CPU).
 @row("super_resolve 2x")
 def superres_2x(size: str) -> Case:
     from lfcam.superres import inverse_maps

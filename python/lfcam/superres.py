@@ -81,15 +81,20 @@ class SuperResParams:
         Smoothing of the sign function, image units.
     """
 
+    # Speed (issue 6): one reweighting pass instead of 2 and 15 BTV iterations instead
+    # of 20 cost 0.08 dB of mean PSNR gain over bicubic on the simulator's four scenes
+    # (+3.13 -> +3.05 dB; per scene +2.32, +3.00, +2.70, +4.17) and save a third of
+    # the shift-and-add and a quarter of the deblurring. Larger BTV steps with fewer
+    # iterations lose decibels (10 x 0.04: +0.38 dB mean): the step stays.
     kernel_sigma: float = 0.4
     kernel_radius: int = 1
-    robust_iterations: int = 2
+    robust_iterations: int = 1
     huber: float = 0.015
     reject: float = 0.15
     place_iterations: int = 6
     place_tolerance: float = 0.25
     psf_sigma: float = 0.55
-    deblur_iterations: int = 20
+    deblur_iterations: int = 15
     lam: float = 0.015
     alpha: float = 0.7
     window: int = 1
@@ -170,12 +175,34 @@ def raw_samples(raw: ArrayLike, cal: Calibration) -> NDArray[np.float32]:
         )
     if arr.ndim == 2:
         arr = arr[..., None]
-    gains = cal.gains if cal.gains.ndim == 3 else cal.gains[..., None]
-    scale = np.float32(_SCALE[arr.dtype])
+    factors = _sample_factors(cal, arr.dtype)
     with np.errstate(invalid="ignore"):
-        out = arr.astype(np.float32) * (gains * scale)
-    out[np.broadcast_to(gains == 0, out.shape)] = np.nan
+        # One pass: arr converted to float32 times (gains * scale), NaN where gains = 0.
+        out = np.multiply(arr, factors, dtype=np.float32)
     return np.ascontiguousarray(out, np.float32)
+
+
+# gains * scale with NaN where the gain is 0, per Calibration object and raw dtype.
+_FACTOR_CACHE: weakref.WeakKeyDictionary[
+    Calibration, tuple[NDArray[np.float32], dict[np.dtype, NDArray[np.float32]]]
+] = weakref.WeakKeyDictionary()
+
+
+def _sample_factors(cal: Calibration, dtype: np.dtype) -> NDArray[np.float32]:
+    """``gains * scale`` (float32, ``(H_raw, W_raw, C)``), NaN where ``gains == 0``: the
+    factor :func:`raw_samples` multiplies the frame by. Cached per calibration object
+    (recomputed if its ``gains`` array is replaced) and raw dtype."""
+    hit = _FACTOR_CACHE.get(cal)
+    if hit is None or hit[0] is not cal.gains:
+        hit = (cal.gains, {})
+        _FACTOR_CACHE[cal] = hit
+    factors = hit[1].get(np.dtype(dtype))
+    if factors is None:
+        gains = cal.gains if cal.gains.ndim == 3 else cal.gains[..., None]
+        scaled = (gains * np.float32(_SCALE[np.dtype(dtype)])).astype(np.float32)
+        factors = np.where(gains == 0, np.float32(np.nan), scaled).astype(np.float32)
+        hit[1][np.dtype(dtype)] = factors
+    return factors
 
 
 def _parallax(depth: DepthResult | ArrayLike, cal: Calibration) -> NDArray[np.float32]:
@@ -329,23 +356,30 @@ def fill_holes(
         ``image`` with holes filled (everything finite if any pixel has data).
     """
     have = (weight >= min_weight) & np.isfinite(image).all(-1)
-    out = np.where(have[..., None], image, 0).astype(np.float32)
+    out = np.where(have[..., None], image, np.float32(0)).astype(np.float32, copy=False)
     hole = ~have
     if not hole.any() or not have.any():
         return out
-    data = out * have[..., None]
+    # `out` is zero where there is no data: it is the data image the blurs read, so
+    # the values filled in are kept aside and written once every level has read it.
+    data = out
     mask = have.astype(np.float32)
+    fills: list[tuple[tuple[slice, slice], NDArray[np.bool_], NDArray[np.float32]]] = []
     # Normalised convolution at sigma 1, 2, 4, 8 px; larger holes from a coarser
     # level (the same at a quarter or less of the resolution), then the mean.
     for sigma in (1.0, 2.0, 4.0, 8.0):
         if not hole.any():
-            return out
-        num = cv2.GaussianBlur(data, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
-        den = cv2.GaussianBlur(mask, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
-        num = num.reshape(data.shape)
-        ok = hole & (den > 1e-3)
-        out[ok] = num[ok] / den[ok][:, None]
-        hole &= ~ok
+            break
+        for region, tile, inner in _hole_tiles(hole, sigma):
+            num = cv2.GaussianBlur(data[region], (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
+            den = cv2.GaussianBlur(mask[region], (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
+            num = num.reshape(den.shape + data.shape[2:])[inner]
+            den = den[inner]
+            sub = hole[tile]  # a view: clearing it clears those holes in `hole`
+            ok = sub & (den > 1e-3)
+            if ok.any():
+                fills.append((tile, ok, num[ok] / den[ok][:, None]))
+                sub &= ~ok
     if hole.any():
         h, w = mask.shape
         small = (max(1, w // 16), max(1, h // 16))
@@ -357,7 +391,44 @@ def fill_holes(
             coarse = num / den[..., None]
         coarse = np.where(den[..., None] > 1e-6, coarse, data.sum((0, 1)) / mask.sum())
         up = cv2.resize(coarse.astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
-        out[hole] = up.reshape(h, w, -1)[hole]
+        rest = hole.copy()
+        fills.append(((slice(0, h), slice(0, w)), rest, up.reshape(h, w, -1)[rest]))
+    for tile, ok, vals in fills:
+        out[tile][ok] = vals
+    return out
+
+
+_TILE = 64
+
+
+def _hole_tiles(
+    hole: NDArray[np.bool_], sigma: float
+) -> list[tuple[tuple[slice, slice], tuple[slice, slice], tuple[slice, slice]]]:
+    """Where to blur for the holes at ``sigma``: ``(region, tile, inner)`` for each
+    ``_TILE``-square tile that holds a hole: the tile extended by OpenCV's kernel
+    radius for ``sigma`` (float images: ``4 sigma``) and clipped to the frame, the tile,
+    and the tile within the region. Blurring the region with ``BORDER_REFLECT`` gives,
+    inside the tile, what blurring the whole frame gives (the frame's own edges reflect
+    the same), at a fraction of the cost when holes are sparse. One entry for the
+    whole frame when the regions would cover half of it."""
+    h, w = hole.shape
+    whole = (slice(0, h), slice(0, w))
+    reach = (round(sigma * 8 + 1) | 1) // 2
+    ny, nx = -(-h // _TILE), -(-w // _TILE)
+    pad = np.zeros((ny * _TILE, nx * _TILE), bool)
+    pad[:h, :w] = hole
+    busy = pad.reshape(ny, _TILE, nx, _TILE).any(axis=(1, 3))
+    if (_TILE + 2 * reach) ** 2 * int(busy.sum()) >= h * w // 2:
+        return [(whole, whole, whole)]
+    out = []
+    for ty, tx in zip(*np.nonzero(busy)):
+        y0, x0 = int(ty) * _TILE, int(tx) * _TILE
+        y1, x1 = min(h, y0 + _TILE), min(w, x0 + _TILE)
+        r0, c0 = max(0, y0 - reach), max(0, x0 - reach)
+        region = (slice(r0, min(h, y1 + reach)), slice(c0, min(w, x1 + reach)))
+        tile = (slice(y0, y1), slice(x0, x1))
+        inner = (slice(y0 - r0, y1 - r0), slice(x0 - c0, x1 - c0))
+        out.append((region, tile, inner))
     return out
 
 
@@ -434,8 +505,8 @@ def super_resolve(
         reject=p.reject,
     )
     with np.errstate(invalid="ignore", divide="ignore"):
-        z = sums / wsum[..., None]
-    z = fill_holes(z.astype(np.float32), wsum)
+        z = np.divide(sums, wsum[..., None], out=sums)  # sums is ours: divided in place
+    z = fill_holes(z, wsum)
     if p.deblur_iterations <= 0:
         return z
     positive = wsum[wsum > 0]
