@@ -28,6 +28,8 @@
 //! result needs no NaN test. Nothing is precomputed for the whole frame, and every
 //! output value is written once.
 
+mod plan;
+
 use std::str::FromStr;
 
 use crate::error::{Error, Result};
@@ -37,6 +39,8 @@ use crate::remap::{
     Bicubic, Bilinear, BilinearQ32, Lanes, MAX_CHANNELS, Packed, Sampler, Taps, any_nan, first,
     four, last, lerp_lanes,
 };
+
+pub use plan::RectifyPlan;
 
 /// How [`rectify`] interpolates the raw frame.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
