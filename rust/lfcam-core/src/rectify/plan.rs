@@ -27,6 +27,7 @@ use crate::error::{Error, Result};
 use crate::image::ImageView;
 use crate::parallel;
 use crate::remap::{Lanes, Linear, MAX_CHANNELS, any_nan, lerp_lanes};
+use crate::simd::Avx2Kernel;
 
 /// One rectified pixel with a value: the top-left pixel of its footprint (crop
 /// coordinates) and its fractions along x and y (0: the footprint has one column, or
@@ -363,15 +364,15 @@ impl RectifyPlan {
                     .get(j)
                     .and_then(|&i| self.views.get(i))
                     .ok_or_else(|| internal(g))?;
-                // Integer samples times tame gains are finite: no NaN to test for.
-                let check_nan = !T::INTEGER || view.wild;
-                crate::simd::run_avx2_or_portable(simd, || {
-                    if check_nan {
-                        self.segment::<T, C, G, true>(view, raw, v, part, &mut band)
-                    } else {
-                        self.segment::<T, C, G, false>(view, raw, v, part, &mut band)
-                    }
-                })?;
+                let segment = Segment::<'_, '_, T, C, G> {
+                    plan: self,
+                    view,
+                    raw,
+                    v0: v,
+                    out: part,
+                    band: &mut band,
+                };
+                crate::simd::run_avx2_or_portable(simd, segment)?;
                 rest = tail;
                 g += n;
             }
@@ -428,6 +429,39 @@ impl RectifyPlan {
             out_row.get_mut(done * C..).ok_or_else(bad)?.fill(f32::NAN);
         }
         Ok(())
+    }
+}
+
+/// Rows `v0..` of one view into `out`: [`RectifyPlan::segment`], for
+/// [`crate::simd::run_avx2_or_portable`].
+struct Segment<'a, 'r, T, const C: usize, const G: usize> {
+    plan: &'a RectifyPlan,
+    view: &'a ViewPlan,
+    raw: &'a ImageView<'r, T>,
+    v0: usize,
+    out: &'a mut [f32],
+    band: &'a mut Vec<f32>,
+}
+
+impl<T: RawSample, const C: usize, const G: usize> Avx2Kernel for Segment<'_, '_, T, C, G> {
+    type Output = Result<()>;
+
+    #[inline(always)]
+    fn run(self) -> Result<()> {
+        let Self {
+            plan,
+            view,
+            raw,
+            v0,
+            out,
+            band,
+        } = self;
+        // Integer samples times tame gains are finite: no NaN to test for.
+        if !T::INTEGER || view.wild {
+            plan.segment::<T, C, G, true>(view, raw, v0, out, band)
+        } else {
+            plan.segment::<T, C, G, false>(view, raw, v0, out, band)
+        }
     }
 }
 
@@ -504,11 +538,13 @@ fn sample_run<const C: usize, const CHECK_NAN: bool>(
         let row = usize::from(t.row).wrapping_sub(r0);
         let top = row.wrapping_mul(stride).wrapping_add(col.wrapping_mul(C));
         let right = if t.tx > 0.0 { C } else { 0 };
-        let bottom = top.wrapping_add(if t.ty > 0.0 { stride } else { 0 });
-        let p00 = lanes(band, top)?;
-        let p01 = lanes(band, top.wrapping_add(right))?;
-        let p10 = lanes(band, bottom)?;
-        let p11 = lanes(band, bottom.wrapping_add(right))?;
+        let down = if t.ty > 0.0 { stride } else { 0 };
+        // One bounds check for the four reads.
+        let quad = band.get(top..)?.get(..down + right + 4)?;
+        let p00 = lanes(quad, 0)?;
+        let p01 = lanes(quad, right)?;
+        let p10 = lanes(quad, down)?;
+        let p11 = lanes(quad, down + right)?;
         let v = lerp_lanes(lerp_lanes(p00, p01, t.tx), lerp_lanes(p10, p11, t.tx), t.ty);
         let v = if CHECK_NAN && any_nan(&v, C) {
             [f32::NAN; 4]
