@@ -27,6 +27,9 @@
 //! the band is *tame* (each pixel NaN in all channels or none, no huge values) the
 //! result needs no NaN test. Nothing is precomputed for the whole frame, and every
 //! output value is written once.
+//!
+//! For many captures with one calibration, [`RectifyPlan`] does what depends on the
+//! maps and gains alone once, and its `rectify` only what depends on the raw frame.
 
 mod plan;
 

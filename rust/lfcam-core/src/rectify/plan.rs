@@ -563,12 +563,25 @@ fn sample_run<const C: usize, const CHECK_NAN: bool>(
     Some(())
 }
 
-/// Whether a gain leaves a footprint's value unaffected by masking: not 0, not NaN.
-/// Also reports whether it is wild (infinite, or `>= TAME` in magnitude).
-#[inline]
-fn gain_ok(g: f32, wild: &mut bool) -> bool {
-    *wild |= g.is_infinite() || g.abs() >= TAME;
-    g != 0.0 && !g.is_nan()
+/// [`gain_status`]: a gain of the pixel is 0 or NaN (its footprints are NaN).
+const GAIN_MASKED: u8 = 1;
+/// [`gain_status`]: a gain of the pixel is infinite or `>= TAME` in magnitude.
+const GAIN_WILD: u8 = 2;
+
+/// Per pixel of the crop, row-major: [`GAIN_MASKED`] and [`GAIN_WILD`] over its gains.
+fn gain_status(gains: &ImageView<'_, f32>, crop: Crop) -> Option<Vec<u8>> {
+    let g = gains.channels();
+    let mut status = Vec::with_capacity(crop.w * crop.h);
+    for y in crop.y0..crop.y0 + crop.h {
+        let row = gains.row_span(y, crop.x0, crop.w)?;
+        status.extend(row.chunks_exact(g.max(1)).map(|px| {
+            px.iter().fold(0u8, |s, &v| {
+                s | (u8::from(v == 0.0 || v.is_nan()) * GAIN_MASKED)
+                    | (u8::from(v.abs() >= TAME) * GAIN_WILD)
+            })
+        }));
+    }
+    Some(status)
 }
 
 /// The plan of view `i` (see the module docs).
@@ -586,6 +599,7 @@ fn build_view(
     // Per crop row, the columns footprints read, inclusive; lo > hi for none.
     let mut used = vec![(usize::MAX, 0usize); h];
     let mut wild = false;
+    let status = gain_status(gains, crop).ok_or_else(|| internal(0))?;
     for v in 0..maps.height() {
         let bad = || internal(v);
         let (points, _) = maps.warp_row(i, v).ok_or_else(bad)?.as_chunks::<2>();
@@ -600,14 +614,12 @@ fn build_view(
                 .filter(|_| kept)
                 .filter(|&(c, r, tx, ty)| {
                     let (c1, r1) = (c + usize::from(tx > 0.0), r + usize::from(ty > 0.0));
-                    let mut ok = true;
-                    for (row, col) in [(r, c), (r, c1), (r1, c), (r1, c1)] {
-                        match gains.row_span(crop.y0 + row, crop.x0 + col, 1) {
-                            Some(px) => ok &= px.iter().all(|&g| gain_ok(g, &mut wild)),
-                            None => ok = false,
-                        }
-                    }
-                    ok
+                    let at = |row: usize, col: usize| {
+                        status.get(row * w + col).copied().unwrap_or(GAIN_MASKED)
+                    };
+                    let s = at(r, c) | at(r, c1) | at(r1, c) | at(r1, c1);
+                    wild |= s & GAIN_WILD != 0;
+                    s & GAIN_MASKED == 0
                 });
             match tap {
                 Some((c, r, tx, ty)) => {
