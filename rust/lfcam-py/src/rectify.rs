@@ -111,11 +111,14 @@ where
     Ok(out.into_any())
 }
 
+/// Warps and masks borrowed as slices, with the warps' `(N, H, W)`.
+type WarpMaps<'a> = (&'a [f32], Option<&'a [u8]>, [usize; 3]);
+
 /// `warps` as `(N, H, W, 2)` positions and `masks` as `(N, H, W)`, C-contiguous.
 fn warp_maps<'a>(
     warps: &'a PyReadonlyArrayDyn<'_, f32>,
     masks: Option<&'a PyReadonlyArrayDyn<'_, u8>>,
-) -> PyResult<(&'a [f32], Option<&'a [u8]>, [usize; 3])> {
+) -> PyResult<WarpMaps<'a>> {
     let py = warps.py();
     let &[n, h, w, 2] = warps.shape() else {
         return Err(input_error(
