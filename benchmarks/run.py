@@ -160,7 +160,9 @@ def _same_where_defined(atol: float) -> Callable[[Any, Any], bool]:
     return same
 
 
-def _rectify_case(size: str, interp: str, flag: int, per_view: bool = False) -> Case:
+def _rectify_case(
+    size: str, interp: str, flag: int, per_view: bool = False, plan: bool = True
+) -> Case:
     d = _rectify_inputs(size)
     (fw, fh), _, (rw, rh) = _RECTIFY_SIZES[size]
     raw, gains, crops, warps, masks = d["raw"], d["gains"], d["crops"], d["warps"], d["masks"]
@@ -182,17 +184,26 @@ def _rectify_case(size: str, interp: str, flag: int, per_view: bool = False) -> 
         return outs
 
     kind = "cubic" if flag == cv2.INTER_CUBIC else "linear"
+    if plan:
+        # A capture's rectification: the plan is prepared once per calibration (timed
+        # in the row "rectify plan preparation"), as lfcam.rectify(raw, cal) does.
+        prepared = lfcam.warp.RectifyPlan(gains, crops, warps, masks, interp=interp)  # type: ignore[arg-type]
+        ours: Callable[[], Any] = lambda: prepared.rectify(raw)  # noqa: E731
+    else:
+        ours = lambda: lfcam.warp.rectify(raw, gains, crops, warps, masks, interp=interp)  # type: ignore[arg-type]  # noqa: E731
     return Case(
-        lfcam=lambda: lfcam.warp.rectify(raw, gains, crops, warps, masks, interp=interp),
+        lfcam=ours,
         reference=opencv_way_per_view if per_view else opencv_way,
         reference_name=f"{'per view: ' if per_view else ''}gain*raw, crop, cv2.remap {kind}",
-        shape=f"{fw}x{fh}x3 u8 -> 12x{rw}x{rh}x3, {masks.mean():.0%} kept",
+        shape=f"{fw}x{fh}x3 u8 -> 12x{rw}x{rh}x3, {masks.mean():.0%} kept"
+        + (", plan prepared once" if plan else ""),
         same=_same_where_defined(1e-5),
     )
 
 
 @row("rectify")
 def rectify_bilinear(size: str) -> Case:
+    # Issue 4's row: a capture's rectification with the calibration's prepared plan.
     return _rectify_case(size, "bilinear", cv2.INTER_LINEAR)
 
 
@@ -202,16 +213,44 @@ def rectify_per_view(size: str) -> Case:
     return _rectify_case(size, "bilinear", cv2.INTER_LINEAR, per_view=True)
 
 
+@row("rectify, no plan")
+def rectify_no_plan(size: str) -> Case:
+    # One-off: lfcam.warp.rectify from the maps, nothing prepared.
+    return _rectify_case(size, "bilinear", cv2.INTER_LINEAR, plan=False)
+
+
+@row("rectify plan preparation")
+def rectify_plan_preparation(size: str) -> Case:
+    # Once per calibration: preparing the plan, against one capture the OpenCV way
+    # (the ratio is the number of captures' worth it costs).
+    d = _rectify_inputs(size)
+    (fw, fh), _, (rw, rh) = _RECTIFY_SIZES[size]
+    raw, gains, crops, warps, masks = d["raw"], d["gains"], d["crops"], d["warps"], d["masks"]
+    reference = _rectify_case(size, "bilinear", cv2.INTER_LINEAR, plan=False)
+
+    def same(plan: Any, theirs: Any) -> bool:
+        return reference.same(plan.rectify(raw), theirs)
+
+    return Case(
+        lfcam=lambda: lfcam.warp.RectifyPlan(gains, crops, warps, masks),
+        reference=reference.reference,
+        reference_name="one capture the OpenCV way, as in rectify",
+        shape=f"12x{rw}x{rh} maps, {fw}x{fh}x3 gains",
+        same=same,
+    )
+
+
 @row("rectify, outputs reused")
 def rectify_reused(size: str) -> Case:
     # Many captures in a row: both sides write into buffers allocated once, so neither
-    # pays the page faults of fresh outputs (a third of lfcam's time above).
+    # pays the page faults of fresh outputs.
     d = _rectify_inputs(size)
     (fw, fh), _, (rw, rh) = _RECTIFY_SIZES[size]
     raw, gains, crops, warps, masks = d["raw"], d["gains"], d["crops"], d["warps"], d["masks"]
     out = np.empty((12, rh, rw, 3), np.float32)
     g = np.empty(raw.shape, np.float32)
     dst = [np.empty((rh, rw, 3), np.float32) for _ in range(12)]
+    plan = lfcam.warp.RectifyPlan(gains, crops, warps, masks)
 
     def opencv_way() -> list[np.ndarray]:
         np.multiply(raw, np.float32(1 / 255), out=g)
@@ -221,7 +260,7 @@ def rectify_reused(size: str) -> Case:
         return dst
 
     return Case(
-        lfcam=lambda: lfcam.warp.rectify(raw, gains, crops, warps, masks, out=out),
+        lfcam=lambda: plan.rectify(raw, out=out),
         reference=opencv_way,
         reference_name="the same, out= / dst= reused",
         shape=f"{fw}x{fh}x3 u8 -> 12x{rw}x{rh}x3, {masks.mean():.0%} kept",
@@ -231,7 +270,8 @@ def rectify_reused(size: str) -> Case:
 
 @row("rectify bicubic")
 def rectify_bicubic(size: str) -> Case:
-    return _rectify_case(size, "bicubic", cv2.INTER_CUBIC)
+    # No plan: plans are bilinear.
+    return _rectify_case(size, "bicubic", cv2.INTER_CUBIC, plan=False)
 
 
 @row("rectify output only")
@@ -240,6 +280,7 @@ def rectify_all_masked(size: str) -> Case:
     d = _rectify_inputs(size)
     _, _, (rw, rh) = _RECTIFY_SIZES[size]
     none = np.zeros_like(d["masks"])
+    plan = lfcam.warp.RectifyPlan(d["gains"], d["crops"], d["warps"], none)
 
     def fill() -> np.ndarray:
         out = np.empty((12, rh, rw, 3), np.float32)
@@ -247,7 +288,7 @@ def rectify_all_masked(size: str) -> Case:
         return out
 
     return Case(
-        lfcam=lambda: lfcam.warp.rectify(d["raw"], d["gains"], d["crops"], d["warps"], none),
+        lfcam=lambda: plan.rectify(d["raw"]),
         reference=fill,
         reference_name="numpy empty + fill(nan)",
         shape=f"12x{rw}x{rh}x3 f32, all masked",

@@ -529,6 +529,182 @@ def test_rectify_unallocatable_output_raises_memory_error() -> None:
         warp.rectify(raw, gains, [[0, 0, 10, 10]], warps, views=np.zeros(10**6, np.int64))
 
 
+# --- RectifyPlan ---------------------------------------------------------------------
+
+
+def assert_same_bits(a: np.ndarray, b: np.ndarray) -> None:
+    """Equal element for element, bit for bit (any NaN equals any NaN)."""
+    assert a.shape == b.shape
+    assert a.dtype == b.dtype
+    nan = np.isnan(a)
+    np.testing.assert_array_equal(nan, np.isnan(b))
+    np.testing.assert_array_equal(a[~nan].view(np.uint32), b[~nan].view(np.uint32))
+
+
+@pytest.mark.parametrize(("dtype", "channels", "gain_channels"), CASES)
+@pytest.mark.parametrize("interp", ["bilinear", "bilinear-exact"])
+def test_plan_equals_rectify(dtype, channels, gain_channels, interp) -> None:
+    crops = grid_crops(3, 4, 40, 30)
+    raw = make_raw(3 * 30 + 9, 4 * 40 + 5, channels, dtype)
+    if dtype == np.float32:
+        raw[10, 20] = np.nan
+        raw[50, 70] = np.inf
+    gains = make_gains(raw.shape[0], raw.shape[1], gain_channels)
+    warps, masks = smooth_warps(crops, 38, 47)
+    warps[:, ::7, ::5] = np.round(warps[:, ::7, ::5])  # one-column / one-row footprints
+    views = [5, 0, 11, 5]
+    for m in (masks, None):
+        plan = warp.RectifyPlan(gains, crops, warps, m, interp=interp)
+        want = warp.rectify(raw, gains, crops, warps, m, interp=interp, views=views)
+        assert np.isfinite(want).mean() > 0.3
+        assert_same_bits(plan.rectify(raw, views=views), want)
+        assert_same_bits(plan.rectify(raw)[views], want)
+        # Against the float64 definition too (where it is finite: with an infinite
+        # raw value, float32 interpolation gives NaN, inf - inf, where it gives inf).
+        ref = reference_rectify(raw, gains, crops, warps, m, interp, views)
+        ok = np.isfinite(ref)
+        np.testing.assert_allclose(want[ok], ref[ok], rtol=0, atol=2e-6)
+    if dtype != np.float32:
+        # An integer frame has a value wherever the plan keeps a pixel.
+        full = plan.rectify(raw)
+        assert plan.kept == int(np.isfinite(full).reshape(*full.shape[:3], -1).all(-1).sum())
+
+
+def test_plan_agrees_with_the_opencv_way_and_reuses_out() -> None:
+    crops = grid_crops(3, 4, 48, 36)
+    raw = make_raw(3 * 36 + 6, 4 * 48 + 4, 3, np.uint8)
+    gains = make_gains(raw.shape[0], raw.shape[1], 3)
+    warps, masks = smooth_warps(crops, 44, 58)
+    plan = warp.RectifyPlan(gains, crops, warps, masks)
+    theirs = opencv_way(raw, gains, crops, warps, cv2.INTER_LINEAR)
+    out = np.full((12, 44, 58, 3), 7.0, np.float32)
+    assert plan.rectify(raw, out=out) is out
+    both = ~np.isnan(out).any(-1)
+    assert both.mean() > 0.3
+    np.testing.assert_allclose(out[both], theirs[both], rtol=0, atol=1e-5)
+    # Every element is written: NaN where the definition has no value.
+    assert_same_bits(out, warp.rectify(raw, gains, crops, warps, masks))
+
+
+def test_plan_keeps_its_own_copies() -> None:
+    crops = grid_crops(1, 2, 30, 20)
+    raw = make_raw(25, 65, 3, np.uint16)
+    gains = make_gains(25, 65, 1)
+    warps, masks = smooth_warps(crops, 18, 25)
+    plan = warp.RectifyPlan(gains, crops, warps, masks)
+    want = plan.rectify(raw)
+    gains[...] = 0
+    warps[...] = np.nan
+    masks[...] = False
+    assert_same_bits(plan.rectify(raw), want)
+    assert np.isfinite(want).mean() > 0.3
+    assert plan.nbytes > 12 * plan.kept
+    assert (
+        repr(plan)
+        == f"RectifyPlan(n_views=2, shape=(18, 25), raw_shape=(25, 65), kept={plan.kept})"
+    )
+
+
+@pytest.mark.parametrize(
+    ("change", "needle"),
+    [
+        ({"gains": np.ones((20, 45, 5), np.float32)}, r"^gains: has 5 channels"),
+        ({"gains": np.ones((20, 45, 3))}, r"^gains: dtype float64 is not supported"),
+        ({"crops": [[0, 0, 20, 15]]}, r"^crops: has 1 rectangles but warps has 2 views"),
+        ({"crops": [[0, 0, 20, 15], [30, 0, 20, 15]]}, r"^crops\[1\]: .* lies outside the 45x20"),
+        ({"warps": np.zeros((2, 12, 14))}, r"^warps: expected float32"),
+        ({"masks": np.ones((2, 12, 15), bool)}, r"^masks: shape \(2, 12, 15\) differs"),
+        ({"interp": "bicubic"}, r"^interp: expected one of 'bilinear', 'bilinear-exact', got"),
+    ],
+)
+def test_plan_bad_inputs_name_the_argument(change: dict, needle: str) -> None:
+    args = {
+        "gains": np.ones((20, 45, 3), np.float32),
+        "crops": [[0, 0, 20, 15], [20, 0, 20, 15]],
+        "warps": np.zeros((2, 12, 14, 2), np.float32),
+        "masks": None,
+    }
+    kwargs = {}
+    for k, v in change.items():
+        (kwargs if k == "interp" else args)[k] = v
+    with pytest.raises(lfcam.InputError, match=needle) as info:
+        warp.RectifyPlan(*args.values(), **kwargs)
+    assert isinstance(info.value, ValueError)
+
+
+def test_plan_rectify_bad_inputs_name_the_argument() -> None:
+    crops = [[0, 0, 20, 15], [20, 0, 20, 15]]
+    warps = np.zeros((2, 12, 14, 2), np.float32)
+    plan = warp.RectifyPlan(np.ones((20, 45, 3), np.float32), crops, warps)
+    raw = np.zeros((20, 45, 3), np.uint8)
+    cases = [
+        ({"raw": raw.astype(np.float64)}, r"^raw: dtype float64 is not supported"),
+        ({"raw": raw[:19]}, r"^raw: \(H, W\) = \(19, 45\) differs from the plan's \(20, 45\)"),
+        ({"raw": raw[..., 0]}, r"^raw: has 1 channels but the plan's gains have 3"),
+        ({"raw": np.zeros((20, 45, 5), np.uint8)}, r"^raw: has 5 channels"),
+        ({"views": [0, 2]}, r"^views\[1\]: view index 2 is out of range for 2 views"),
+        ({"views": np.zeros(0, np.int64)}, r"^views: at least one view must be selected"),
+        ({"out": np.zeros((2, 12, 14), np.float32)}, r"^out: expected float32 of shape"),
+    ]
+    for change, needle in cases:
+        kwargs = {"raw": raw, **change}
+        with pytest.raises(lfcam.InputError, match=needle):
+            plan.rectify(kwargs.pop("raw"), **kwargs)
+    # The bindings check their own arguments.
+    inner = plan._plan
+    with pytest.raises(lfcam.InputError, match=r"^raw: \(H, W\) = \(19, 45\) differs"):
+        inner.rectify(raw[:19].copy())
+    with pytest.raises(lfcam.InputError, match=r"^views\[0\]: view index -1 is negative"):
+        inner.rectify(raw, np.array([-1]))
+    with pytest.raises(lfcam.InputError, match=r"^interp: a prepared plan is bilinear"):
+        _lfcam.RectifyPlan(np.ones((20, 45), np.float32), np.array(crops), warps, None, "bicubic")
+    with pytest.raises(lfcam.InputError, match=r"^crops: expected dtype int64"):
+        _lfcam.RectifyPlan(
+            np.ones((20, 45), np.float32), np.array(crops, np.int32), warps, None, "bilinear"
+        )
+
+
+def test_plan_parallel_and_one_thread_agree() -> None:
+    crops = grid_crops(3, 4, 160, 120)
+    raw = make_raw(370, 650, 3, np.uint8)
+    gains = make_gains(370, 650, 3)
+    warps, masks = smooth_warps(crops, 150, 200)
+    plan = warp.RectifyPlan(gains, crops, warps, masks)
+    before = lfcam.get_num_threads()
+    try:
+        lfcam.set_num_threads(1)
+        one = plan.rectify(raw)
+        lfcam.set_num_threads(3)
+        three = plan.rectify(raw)
+    finally:
+        lfcam.set_num_threads(before)
+    assert_same_bits(one, three)
+    assert_same_bits(one, warp.rectify(raw, gains, crops, warps, masks))
+
+
+def test_pipeline_rectify_uses_the_cached_plan(reference_camera) -> None:
+    from lfcam.pipeline import rectify_plan
+
+    cal = reference_camera.cal
+    raw = lfcam.read_raw(reference_camera.sim.captures["planes"])
+    plan = rectify_plan(cal)
+    assert rectify_plan(cal) is plan
+    want = warp.rectify(raw, cal.gains, cal.crops, cal.warps, cal.masks)
+    assert_same_bits(lfcam.rectify(raw, cal), want)
+    assert rectify_plan(cal) is plan
+    gains = cal.gains
+    try:
+        cal.gains = gains.copy()  # a new array: a new plan
+        assert rectify_plan(cal) is not plan
+        assert_same_bits(lfcam.rectify(raw, cal), want)
+    finally:
+        cal.gains = gains
+    cubic = lfcam.rectify(raw, cal, interp="bicubic")
+    assert_same_bits(
+        cubic, warp.rectify(raw, cal.gains, cal.crops, cal.warps, cal.masks, interp="bicubic")
+    )
+
+
 # --- the simulated camera ----------------------------------------------------------
 
 

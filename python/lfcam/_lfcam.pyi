@@ -1,11 +1,12 @@
 """Type stub of the Rust extension module (rust/lfcam-py). Checked by mypy.stubtest."""
 
-from typing import Final, NoReturn, TypeVar
+from typing import Final, NoReturn, TypeVar, final
 
 import numpy as np
 from numpy.typing import NDArray
 
 __all__ = [
+    "RectifyPlan",
     "__version__",
     "_panic_for_test",
     "_raise_core_error",
@@ -49,6 +50,39 @@ def rectify(
     out: NDArray[np.float32] | None = None,
 ) -> NDArray[np.float32]:
     """Gain, crop and remap views of raw into (M, H, W[, C]) float32 (NaN: no data)."""
+
+@final
+class RectifyPlan:
+    """Rectification prepared once per calibration (bilinear): gains, crops, warps, masks."""
+
+    def __new__(
+        cls,
+        gains: NDArray[np.float32],
+        crops: NDArray[np.int64],
+        warps: NDArray[np.float32],
+        masks: NDArray[np.uint8] | None,
+        interp: str,
+    ) -> RectifyPlan: ...
+    def rectify(
+        self,
+        raw: NDArray[_Pixel],
+        views: NDArray[np.int64] | None = None,
+        out: NDArray[np.float32] | None = None,
+    ) -> NDArray[np.float32]:
+        """Rectify views of a C-contiguous (H, W[, C]) raw into (M, Hr, Wr[, C]) float32."""
+
+    @property
+    def n_views(self) -> int: ...
+    @property
+    def shape(self) -> tuple[int, int]: ...
+    @property
+    def raw_shape(self) -> tuple[int, int]: ...
+    @property
+    def gain_channels(self) -> int: ...
+    @property
+    def kept(self) -> int: ...
+    @property
+    def nbytes(self) -> int: ...
 
 def rasterize(
     vertices: NDArray[np.float32],

@@ -7,7 +7,9 @@ and :mod:`lfcam.cli`).
 from __future__ import annotations
 
 import os
+import threading
 import time
+import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,8 +21,9 @@ from .calibration import Calibration
 from .depth import DepthResult, estimate_depth
 from .errors import InputError
 from .io import demosaic, read_raw
+from .warp import RectifyPlan
 
-__all__ = ["CaptureResult", "process_capture", "rectify"]
+__all__ = ["CaptureResult", "process_capture", "rectify", "rectify_plan"]
 
 
 def rectify(raw: np.ndarray, cal: Calibration, *, interp: str = "bilinear") -> np.ndarray:
@@ -47,6 +50,14 @@ def rectify(raw: np.ndarray, cal: Calibration, *, interp: str = "bilinear") -> n
     Examples
     --------
     >>> views = lfcam.rectify(lfcam.read_raw("capture.png"), cal)  # doctest: +SKIP
+
+    Notes
+    -----
+    Bilinear rectification runs through the calibration's :class:`lfcam.warp.RectifyPlan`,
+    prepared on the first call and cached with the calibration (about as long as a few
+    captures' rectification; then each capture's is faster). Replacing ``cal.gains``,
+    ``cal.crops``, ``cal.warps`` or ``cal.masks`` prepares a new plan; changing their
+    values in place does not: assign new arrays instead.
     """
     from .warp import rectify as _rectify
 
@@ -58,7 +69,30 @@ def rectify(raw: np.ndarray, cal: Calibration, *, interp: str = "bilinear") -> n
             f"raw: frame is {raw.shape[1]}x{raw.shape[0]}, the calibration expects"
             f" {cal.raw_shape[1]}x{cal.raw_shape[0]}"
         )
+    if interp in ("bilinear", "bilinear-exact"):
+        return rectify_plan(cal).rectify(raw)
     return _rectify(raw, cal.gains, cal.crops, cal.warps, cal.masks, interp=interp)
+
+
+# Each calibration's prepared rectification, with the arrays it was prepared from.
+_PLANS: weakref.WeakKeyDictionary[Calibration, tuple[tuple[np.ndarray, ...], RectifyPlan]]
+_PLANS = weakref.WeakKeyDictionary()
+_PLANS_LOCK = threading.Lock()
+
+
+def rectify_plan(cal: Calibration) -> RectifyPlan:
+    """The calibration's :class:`lfcam.warp.RectifyPlan` (bilinear), prepared on first use
+    and cached while ``cal`` lives; prepared again if ``cal``'s gains, crops, warps or
+    masks have been replaced by other arrays since."""
+    arrays = (cal.gains, cal.crops, cal.warps, cal.masks)
+    with _PLANS_LOCK:
+        cached = _PLANS.get(cal)
+    if cached is not None and all(a is b for a, b in zip(cached[0], arrays)):
+        return cached[1]
+    plan = RectifyPlan(*arrays)
+    with _PLANS_LOCK:
+        _PLANS[cal] = (arrays, plan)
+    return plan
 
 
 @dataclass

@@ -17,7 +17,7 @@ from lfcam import _lfcam
 from lfcam._validate import as_image, as_int_array
 from lfcam.errors import InputError
 
-__all__ = ["INTERPOLATIONS", "Interp", "rectify", "remap_bilinear"]
+__all__ = ["INTERPOLATIONS", "Interp", "RectifyPlan", "rectify", "remap_bilinear"]
 
 Interp = Literal["bilinear", "bilinear-exact", "bilinear-q32", "bicubic"]
 
@@ -68,6 +68,52 @@ def _check_channels(image: NDArray[Any], name: str) -> None:
         raise InputError(
             f"{name}: has {image.shape[2]} channels; 1 to {_MAX_CHANNELS} are supported"
         )
+
+
+def _check_maps(
+    crops: ArrayLike, warps: ArrayLike, masks: ArrayLike | None
+) -> tuple[NDArray[np.int64], NDArray[np.float32], NDArray[np.uint8] | None]:
+    """``crops``, ``warps`` and ``masks`` as the bindings take them (masks as bytes)."""
+    crops_arr = as_int_array(crops, "crops", shape=(None, 4))
+    warps_arr = _as_float32(warps, "warps", ("N", "H", "W", 2))
+    n, h, w = warps_arr.shape[:3]
+    if len(crops_arr) != n:
+        raise InputError(
+            f"crops: has {len(crops_arr)} rectangles but warps has {n} views; one rectangle "
+            "per view is needed"
+        )
+    masks_arr = None
+    if masks is not None:
+        m = np.asarray(masks)
+        if m.dtype != np.bool_:
+            raise InputError(f"masks: expected bool, got dtype {m.dtype}")
+        if m.shape != (n, h, w):
+            raise InputError(
+                f"masks: shape {m.shape} differs from the warps' (N, H, W) = {(n, h, w)}"
+            )
+        # The bindings read masks as bytes (a bool array is one byte per element).
+        masks_arr = np.ascontiguousarray(m).view(np.uint8)
+    return crops_arr, warps_arr, masks_arr
+
+
+def _check_interp(interp: Any, allowed: Sequence[str]) -> None:
+    if not isinstance(interp, str) or interp not in allowed:
+        choices = ", ".join(repr(i) for i in allowed)
+        raise InputError(f"interp: expected one of {choices}, got {interp!r}")
+
+
+def _check_views(views: ArrayLike | None, n: int) -> NDArray[np.int64] | None:
+    """``views`` as int64 indices into ``n`` views, or None (all)."""
+    if views is None:
+        return None
+    views_arr = as_int_array(views, "views", shape=(None,))
+    bad = np.flatnonzero((views_arr < 0) | (views_arr >= n))
+    if bad.size:
+        j = int(bad[0])
+        raise InputError(
+            f"views[{j}]: view index {int(views_arr[j])} is out of range for {n} views"
+        )
+    return views_arr
 
 
 def remap_bilinear(
@@ -210,6 +256,8 @@ def rectify(
 
     See Also
     --------
+    RectifyPlan : the same, prepared once per calibration (bilinear): much faster for
+        many captures.
     remap_bilinear, crop_lenslets
 
     Examples
@@ -240,39 +288,171 @@ def rectify(
             f"gains: has {gain_channels} channels but raw has {channels}; gains need 1 "
             f"channel (shared by every channel of raw) or {channels}"
         )
-    crops_arr = as_int_array(crops, "crops", shape=(None, 4))
-    warps_arr = _as_float32(warps, "warps", ("N", "H", "W", 2))
+    crops_arr, warps_arr, masks_arr = _check_maps(crops, warps, masks)
     n, h, w = warps_arr.shape[:3]
-    if len(crops_arr) != n:
-        raise InputError(
-            f"crops: has {len(crops_arr)} rectangles but warps has {n} views; one rectangle "
-            "per view is needed"
-        )
-    masks_arr = None
-    if masks is not None:
-        m = np.asarray(masks)
-        if m.dtype != np.bool_:
-            raise InputError(f"masks: expected bool, got dtype {m.dtype}")
-        if m.shape != (n, h, w):
-            raise InputError(
-                f"masks: shape {m.shape} differs from the warps' (N, H, W) = {(n, h, w)}"
-            )
-        # The bindings read masks as bytes (a bool array is one byte per element).
-        masks_arr = np.ascontiguousarray(m).view(np.uint8)
-    if not isinstance(interp, str) or interp not in INTERPOLATIONS:
-        choices = ", ".join(repr(i) for i in INTERPOLATIONS)
-        raise InputError(f"interp: expected one of {choices}, got {interp!r}")
-    views_arr = None
-    if views is not None:
-        views_arr = as_int_array(views, "views", shape=(None,))
-        bad = np.flatnonzero((views_arr < 0) | (views_arr >= n))
-        if bad.size:
-            j = int(bad[0])
-            raise InputError(
-                f"views[{j}]: view index {int(views_arr[j])} is out of range for {n} views"
-            )
+    _check_interp(interp, INTERPOLATIONS)
+    views_arr = _check_views(views, n)
     n_out = n if views_arr is None else len(views_arr)
     out_arr = _check_out(out, (n_out, h, w, *raw_arr.shape[2:]))
     return _lfcam.rectify(
         raw_arr, gains_arr, crops_arr, warps_arr, masks_arr, interp, views_arr, out_arr
     )
+
+
+class RectifyPlan:
+    """Rectification prepared once per calibration, for many raw frames.
+
+    Everything :func:`rectify` derives from the gains, crops, warps and masks alone is
+    derived here once: for every view and rectified row the runs of pixels that have a
+    value, and for each such pixel its footprint and fractions; the gains of the raw
+    pixels that footprints read are copied. A capture's :meth:`rectify` is then one
+    streaming pass (gain, interpolate, NaN-fill the rest) with no map arithmetic and no
+    work on the pixels without data beyond writing NaN. Its output equals
+    :func:`rectify`'s with the same arguments, bit for bit.
+
+    The plan copies what it needs (about 12 bytes per rectified pixel with a value, plus
+    the gains that footprints read): changing the arrays afterwards does not change it.
+    Prepare a new plan for a new calibration.
+
+    Parameters
+    ----------
+    gains : array_like of float32, shape (H_raw, W_raw) or (H_raw, W_raw, G)
+        Per-pixel gains, as for :func:`rectify`; they fix the raw frame's size.
+    crops : array_like of int, shape (N, 4)
+        View ``i``'s rectangle ``(x0, y0, w, h)`` in raw pixels, inside the frame.
+    warps : array_like of float32, shape (N, H_rect, W_rect, 2)
+        Crop-relative positions ``(x, y)`` to sample; NaN for none.
+    masks : array_like of bool, shape (N, H_rect, W_rect), optional
+        False where a view has no data. Default: everywhere True.
+    interp : {"bilinear", "bilinear-exact"}, optional
+        As for :func:`rectify` (both are OpenCV's ``INTER_LINEAR``). For the other
+        methods, call :func:`rectify`.
+
+    Raises
+    ------
+    InputError
+        Naming the argument, as :func:`rectify` (``crops[3]: ...``), and for an
+        ``interp`` other than the two above. ``InputError`` is a ``ValueError``.
+
+    See Also
+    --------
+    rectify, lfcam.rectify : the calibration's plan is built on first use and cached.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import lfcam.warp
+    >>> raw = np.arange(12, dtype=np.uint8).reshape(3, 4) * 10
+    >>> gains = np.full((3, 4), 2.0, dtype=np.float32)
+    >>> warps = np.array([[[[0.5, 0.0], [1.0, 0.5], [1.5, 0.0]]]], dtype=np.float32)
+    >>> plan = lfcam.warp.RectifyPlan(gains, [[2, 0, 2, 3]], warps)
+    >>> plan
+    RectifyPlan(n_views=1, shape=(1, 3), raw_shape=(3, 4), kept=2)
+    >>> np.round(plan.rectify(raw) * 255 / 2, 3)
+    array([[[25., 50., nan]]], dtype=float32)
+    """
+
+    def __init__(
+        self,
+        gains: ArrayLike,
+        crops: ArrayLike,
+        warps: ArrayLike,
+        masks: ArrayLike | None = None,
+        *,
+        interp: Interp = "bilinear",
+    ) -> None:
+        gains_arr = as_image(gains, "gains", dtypes=(np.float32,))
+        _check_channels(gains_arr, "gains")
+        crops_arr, warps_arr, masks_arr = _check_maps(crops, warps, masks)
+        _check_interp(interp, ("bilinear", "bilinear-exact"))
+        self.interp: Interp = interp
+        self._plan = _lfcam.RectifyPlan(gains_arr, crops_arr, warps_arr, masks_arr, interp)
+
+    @property
+    def n_views(self) -> int:
+        """Number of views ``N``."""
+        return self._plan.n_views
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """The rectified frame's ``(H_rect, W_rect)``."""
+        return self._plan.shape
+
+    @property
+    def raw_shape(self) -> tuple[int, int]:
+        """The raw frames' ``(H_raw, W_raw)`` (the gains')."""
+        return self._plan.raw_shape
+
+    @property
+    def gain_channels(self) -> int:
+        """Channels of the gains: 1 (shared by every channel of raw) or raw's."""
+        return self._plan.gain_channels
+
+    @property
+    def kept(self) -> int:
+        """Rectified pixels with a value, over all views."""
+        return self._plan.kept
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of memory the plan holds."""
+        return self._plan.nbytes
+
+    def __repr__(self) -> str:
+        return (
+            f"RectifyPlan(n_views={self.n_views}, shape={self.shape}, "
+            f"raw_shape={self.raw_shape}, kept={self.kept})"
+        )
+
+    def rectify(
+        self,
+        raw: ArrayLike,
+        *,
+        views: ArrayLike | None = None,
+        out: NDArray[np.float32] | None = None,
+    ) -> NDArray[np.float32]:
+        """Rectify the views of a raw frame with this plan.
+
+        Parameters
+        ----------
+        raw : array_like, shape (H_raw, W_raw) or (H_raw, W_raw, C)
+            The raw frame, uint8, uint16 or float32, ``C <= 4``, of the plan's
+            :attr:`raw_shape`; ``C`` equal to :attr:`gain_channels` unless that is 1.
+            Not converted; a non-C-contiguous array is copied once.
+        views : array_like of int, shape (M,), optional
+            Indices of the views to rectify, in output order (repeats allowed).
+            Default: all ``N``.
+        out : numpy.ndarray of float32, optional
+            Written instead of a new array: C-contiguous, of the output's shape, sharing
+            no memory with ``raw``.
+
+        Returns
+        -------
+        numpy.ndarray of float32, shape (M, H_rect, W_rect) or (M, H_rect, W_rect, C)
+            As :func:`rectify` with the plan's arguments: ``[j]`` is view ``views[j]``,
+            NaN where it has no data; 3-D for a 2-D ``raw``.
+
+        Raises
+        ------
+        InputError
+            Naming the argument: ``raw`` of the wrong dtype, size or channel count,
+            a view index out of range (``views[0]: ...``), an unusable ``out``.
+        """
+        raw_arr = as_image(raw, "raw", dtypes=_RAW_DTYPES)
+        _check_channels(raw_arr, "raw")
+        if raw_arr.shape[:2] != self.raw_shape:
+            raise InputError(
+                f"raw: (H, W) = {raw_arr.shape[:2]} differs from the plan's {self.raw_shape} "
+                "(the gains' it was prepared with)"
+            )
+        channels = raw_arr.shape[2] if raw_arr.ndim == 3 else 1
+        if self.gain_channels not in (1, channels):
+            raise InputError(
+                f"raw: has {channels} channels but the plan's gains have "
+                f"{self.gain_channels}; gains need 1 channel (shared by every channel of "
+                "raw) or as many as raw"
+            )
+        views_arr = _check_views(views, self.n_views)
+        n_out = self.n_views if views_arr is None else len(views_arr)
+        out_arr = _check_out(out, (n_out, *self.shape, *raw_arr.shape[2:]))
+        return self._plan.rectify(raw_arr, views_arr, out_arr)

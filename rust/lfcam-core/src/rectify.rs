@@ -27,6 +27,11 @@
 //! the band is *tame* (each pixel NaN in all channels or none, no huge values) the
 //! result needs no NaN test. Nothing is precomputed for the whole frame, and every
 //! output value is written once.
+//!
+//! For many captures with one calibration, [`RectifyPlan`] does what depends on the
+//! maps and gains alone once, and its `rectify` only what depends on the raw frame.
+
+mod plan;
 
 use std::str::FromStr;
 
@@ -37,6 +42,8 @@ use crate::remap::{
     Bicubic, Bilinear, BilinearQ32, Lanes, MAX_CHANNELS, Packed, Sampler, Taps, any_nan, first,
     four, last, lerp_lanes,
 };
+
+pub use plan::RectifyPlan;
 
 /// How [`rectify`] interpolates the raw frame.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]

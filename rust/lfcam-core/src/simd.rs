@@ -71,3 +71,35 @@ macro_rules! avx2_or_portable {
 }
 
 pub(crate) use avx2_or_portable;
+
+/// Code that [`run_avx2_or_portable`] runs: `run` must be `#[inline(always)]` and call
+/// only `#[inline(always)]` code, so that all of it is compiled into each build.
+pub trait Avx2Kernel {
+    /// What `run` returns.
+    type Output;
+    /// The work.
+    fn run(self) -> Self::Output;
+}
+
+/// Runs `kernel` compiled for AVX2 if `use_avx2` is true and [`has_avx2`] finds AVX2 on
+/// this CPU, else compiled for the baseline: the dispatch of [`avx2_or_portable!`] for
+/// code that is generic (the macro takes no type parameters), such as
+/// `rectify::RectifyPlan`'s loops. (A closure would not do: closures cannot be
+/// `#[inline(always)]`, and one that is not inlined runs as compiled for the baseline.)
+#[inline(always)]
+pub fn run_avx2_or_portable<K: Avx2Kernel>(use_avx2: bool, kernel: K) -> K::Output {
+    #[cfg(target_arch = "x86_64")]
+    {
+        #[target_feature(enable = "avx2")]
+        fn avx2<K: Avx2Kernel>(kernel: K) -> K::Output {
+            kernel.run()
+        }
+        if use_avx2 && has_avx2() {
+            // SAFETY: `avx2` needs only AVX2, which `has_avx2` found on this CPU.
+            #[allow(unsafe_code)]
+            let result = unsafe { avx2(kernel) };
+            return result;
+        }
+    }
+    kernel.run()
+}

@@ -33,7 +33,7 @@ mod lfcam_ext {
     #[pymodule_export]
     use crate::raster::rasterize;
     #[pymodule_export]
-    use crate::rectify::rectify;
+    use crate::rectify::{RectifyPlan, rectify};
     #[pymodule_export]
     use crate::remap::remap_bilinear;
     #[pymodule_export]
