@@ -85,8 +85,9 @@ def test_fill_restores_a_depth_edge_at_the_colour_edge() -> None:
 def test_a_pixel_without_reliable_neighbours_of_its_colour_looks_further() -> None:
     """A background band whose own-coloured neighbours within ``radius`` are all
     unreliable must not take the foreground's parallax (a median sees only relative
-    weights, so tiny colour weights would still decide): it reaches its own colour in
-    the wider second pass. Without ``min_support`` it takes the foreground's 1.5."""
+    weights, so tiny colour weights would still decide): with ``min_support`` (off by
+    default) it reaches its own colour in the wider second pass; without it, it takes
+    the foreground's 1.5."""
     h, w, radius = 30, 100, 10
     xx = np.arange(w)[None, :].repeat(h, 0)
     # Lightness 10 Lab units apart: a colour weight of exp(-5.6), small but not 0.
@@ -97,12 +98,12 @@ def test_a_pixel_without_reliable_neighbours_of_its_colour_looks_further() -> No
     s = np.where(band, 0.5, truth).astype(np.float32)
     conf = np.where(band, 0.0, 0.9).astype(np.float32)
     guide = guide_image(image)
-    out, _, filled = fill_parallax(s, conf, guide, threshold=0.5, radius=radius)
+    out, _, filled = fill_parallax(s, conf, guide, threshold=0.5, radius=radius, min_support=0.002)
     assert filled[band].all()
     np.testing.assert_array_equal(out[band], -0.5)
     np.testing.assert_array_equal(out[~band], truth[~band])
-    # The old behaviour, for contrast: the pixels next to the edge took 1.5.
-    old, _, _ = fill_parallax(s, conf, guide, threshold=0.5, radius=radius, min_support=0.0)
+    # The default, for contrast: the pixels next to the edge take 1.5.
+    old, _, _ = fill_parallax(s, conf, guide, threshold=0.5, radius=radius)
     assert (old[:, 30:35] == 1.5).all()
 
 

@@ -42,15 +42,16 @@ FILL_MAX_RESIDUAL = 0.2
 #: layered scenes 3.9% -> 2.0% (3 x 4) and 6.2% -> 2.0% (3 x 3) of pixels off by > 5%.
 #: (Refilling by low confidence instead broke whole surfaces seen by few views.)
 FILL_MIN_USED = 0.75
-#: A pixel whose window holds less reliable weight than this (its ``support``, the
-#: total weight over the window's grid positions) is not filled from it: its median
-#: would come from neighbours of another colour (the colour weight is tiny but a
-#: median only sees relative weights), e.g. the foreground for a background pixel
-#: whose own neighbours are all unreliable. It goes to the wider second pass instead.
-#: Measured (``benchmarks/hci.py``, antinous): 5 x 5 BadPix0.07 / MSE x 100
-#: 7.5% / 8.85 -> 7.3% / 4.4 (a 690 px block of background above the head had taken
-#: the head's parallax); 3 x 4 and 3 x 3 unchanged (9.3% / 4.64, 11.7% / 5.56).
-FILL_MIN_SUPPORT = 0.002
+#: With ``min_support > 0``, a pixel whose window holds less reliable weight than
+#: that (its ``support``: the total weight over the window's grid positions) is not
+#: filled from it: its median would come from neighbours of another colour (the
+#: colour weight is tiny but a median only sees relative weights). It goes to the
+#: wider second pass instead. Off by default (0): measured with 0.002, HCI antinous
+#: (``benchmarks/hci.py``) 5 x 5 BadPix0.07 / MSE x 100 7.5% / 8.85 -> 7.3% / 4.4 and
+#: 9 x 9 10.6% / 21.2 -> 10.0% / 10.9, 3 x 4 and 3 x 3 unchanged; but the simulated
+#: layered scene 1.5% -> 3.7% of pixels off by > 5%, and lower PSNR of novel views
+#: and super-resolution there (``tests/test_render.py``, ``tests/test_superres.py``).
+FILL_MIN_SUPPORT = 0.0
 
 #: DIS parameters for depth: fine patches, dense stride, variational refinement, at
 #: full resolution (``benchmarks/flow_tuning.py``: Middlebury "other" mean end-point
