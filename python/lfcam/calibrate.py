@@ -290,6 +290,9 @@ def _measure_parallax(
     """
     N = views.shape[0]
     a = prepare(views[ref])
+    grid = np.stack(np.meshgrid(np.arange(a.shape[1]), np.arange(a.shape[0])), -1).astype(
+        np.float32
+    )
     out = np.full((N, 2), np.nan) if init else np.zeros((N, 2))
     cover = np.zeros(N)
     spread = np.zeros(N)
@@ -307,12 +310,10 @@ def _measure_parallax(
         start = None
         if init:
             start = np.broadcast_to(np.asarray(init[i], np.float32), (*a.shape[:2], 2))
-        f = dis_flow(a, prepare(views[i]), params, init=start)
-        b = dis_flow(prepare(views[i]), a, params, init=None if start is None else -start)
+        v = prepare(views[i])
+        f = dis_flow(a, v, params, init=start)
+        b = dis_flow(v, a, params, init=None if start is None else -start)
         # Forward-backward check: follow the flow and come back.
-        grid = np.stack(np.meshgrid(np.arange(f.shape[1]), np.arange(f.shape[0])), -1).astype(
-            np.float32
-        )
         back = remap(b, grid + f)
         fb = np.linalg.norm(f + back, axis=-1)
         # The board must land inside view i's mask too.
@@ -350,9 +351,7 @@ def _lattice_check(P: np.ndarray, grid: tuple[int, int], ref: int) -> tuple[np.n
     X = np.column_stack([cols - cols[ref], rows - rows[ref]]).astype(np.float64)
     finite = np.isfinite(P).all(1)
     inl = finite & (np.arange(len(P)) != ref)
-    out = ~finite
-    out[ref] = False
-    pred = np.zeros_like(P)
+    pred = np.zeros_like(P)  # too few views to fit: no prediction, no outliers
     tol = max(LATTICE_TOLERANCE_PX, LATTICE_TOLERANCE_REL * float(np.nanmax(np.abs(P))))
     while inl.sum() >= 4:
         coef, *_ = np.linalg.lstsq(X[inl], P[inl], rcond=None)
