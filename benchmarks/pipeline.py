@@ -25,13 +25,12 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import tifffile
 
 import lfcam
 from lfcam.calibrate import run_calibration
 from lfcam.pipeline import process_capture
-from lfcam.simulator import SimConfig
+from lfcam.simulator import SimConfig, depth_accuracy
 
 
 def main() -> None:
@@ -100,11 +99,7 @@ def main() -> None:
 def _accuracy(res: Any, cal: lfcam.Calibration, truth_dir: Path) -> tuple[float, float, float]:
     """Median relative depth error, share off by > 5% and coverage, as ``lfcam demo``."""
     truth = tifffile.imread(truth_dir / "depth.tiff")
-    seen = cal.masks[cal.reference]
-    with np.errstate(invalid="ignore"):
-        rel = np.abs(res.depth.depth - truth) / truth
-    ok = seen & np.isfinite(rel)
-    return float(np.median(rel[ok])), float((rel[ok] > 0.05).mean()), float(ok.sum() / seen.sum())
+    return depth_accuracy(res.depth.depth, truth, cal.masks[cal.reference])
 
 
 def _process_peak_rss(capture: Path, calf: Path) -> float:

@@ -603,7 +603,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     from .calibrate import run_calibration
     from .outputs import write_capture
     from .pipeline import process_capture
-    from .simulator import SimConfig, simulate
+    from .simulator import SimConfig, depth_accuracy, simulate
 
     out: Path = args.out_dir
     if out.exists() and any(out.iterdir()) and not args.overwrite:
@@ -627,17 +627,15 @@ def _cmd_demo(args: argparse.Namespace) -> int:
             res = process_capture(raw, cal)
             folder = write_capture(out / "results" / name, res, cal)
             truth = tifffile.imread(sim.truth_dir / name / "depth.tiff")
-            seen = cal.masks[cal.reference]
             z = res.depth.depth
             assert z is not None
-            rel = np.abs(z - truth) / truth
-            ok = seen & np.isfinite(rel)
+            med, bad, cov = depth_accuracy(z, truth, cal.masks[cal.reference])
             rows.append(
                 (
                     name,
-                    float(np.median(rel[ok])),
-                    float((rel[ok] > 0.05).mean()),
-                    float(ok.sum() / seen.sum()),
+                    med,
+                    bad,
+                    cov,
                     res.timings["total"],
                     folder,
                 )

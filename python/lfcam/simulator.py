@@ -62,6 +62,7 @@ __all__ = [
     "SimConfig",
     "SimulatedCamera",
     "SimulationResult",
+    "depth_accuracy",
     "make_scene",
     "simulate",
 ]
@@ -1308,3 +1309,18 @@ def load_truth(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
     """Load ``truth/camera.npz`` written by :func:`simulate` (no pickles)."""
     with np.load(Path(path), allow_pickle=False) as z:
         return {k: z[k] for k in z.files}
+
+
+def depth_accuracy(
+    depth: np.ndarray, truth: np.ndarray, seen: np.ndarray
+) -> tuple[float, float, float]:
+    """Depth against the simulator's truth, as ``lfcam demo`` reports it.
+
+    Over the pixels the reference view ``seen`` (all of them, occlusion bands
+    included): the median of ``|Z - Z_true| / Z_true``, the share of pixels off by
+    more than 5%, and the coverage (share with a finite error).
+    """
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rel = np.abs(depth - truth) / truth
+    ok = seen & np.isfinite(rel)
+    return float(np.median(rel[ok])), float((rel[ok] > 0.05).mean()), float(ok.sum() / seen.sum())
