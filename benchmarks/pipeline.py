@@ -105,14 +105,15 @@ def _accuracy(res: Any, cal: lfcam.Calibration, truth_dir: Path) -> tuple[float,
 def _process_peak_rss(capture: Path, calf: Path) -> float:
     """Peak resident memory (MB) of one capture processed in a fresh interpreter.
 
-    The child reports its own peak (``ru_maxrss`` of ``RUSAGE_SELF``): the parent's
-    ``RUSAGE_CHILDREN`` figure is the maximum over every child it ever waited for,
-    which includes the simulator's and calibration's workers.
+    The child reports its own peak, ``VmHWM`` of ``/proc/self/status`` (Linux): not
+    ``ru_maxrss``, which Linux carries over ``execve`` from the forked copy of this
+    parent (after a simulation, a gigabyte that the child never used), nor the
+    parent's ``RUSAGE_CHILDREN`` (the maximum over every child ever waited for).
     """
     code = (
-        "import resource, lfcam; from lfcam.pipeline import process_capture;"
+        "import lfcam; from lfcam.pipeline import process_capture;"
         f"process_capture({str(capture)!r}, lfcam.Calibration.load({str(calf)!r}));"
-        "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)"
+        "print([l.split()[1] for l in open('/proc/self/status') if l.startswith('VmHWM')][0])"
     )
     out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True)
     return int(out.stdout.split()[-1]) / 1024.0  # Linux: kB
