@@ -73,3 +73,59 @@ def test_too_many_views_are_refused_before_any_flow() -> None:
     with pytest.raises(lfcam.InputError, match=rf"views: {n} views; at most"):
         lfcam.depth_from_views(views, np.zeros((n, 2)), 0)
     assert time.perf_counter() - t0 < 1.0
+
+
+def _crafted_flows(monkeypatch, grid, s_true, s_wrong, bad_rows, far_radius):
+    """Replace the optical flows by exact ones, ``o_i * s_true``, except that views
+    further than ``far_radius`` from the reference (in grid steps) move by
+    ``o_i * s_wrong`` in ``bad_rows``: far views' flows failing together, as they do
+    near occlusions on a 9 x 9 light field. Returns views, offsets, reference."""
+    rows, cols = grid
+    rr, rc = rows // 2, cols // 2
+    offsets = np.array([[c - rc, r - rr] for r in range(rows) for c in range(cols)], np.float64)
+    reference = rr * cols + rc
+    h, w = 30, 40
+    n = len(offsets)
+
+    def fake(views, ref, params, fb, threads, *, margin=None, backward=True):
+        s = np.full((n, h, w), s_true, np.float32)
+        far = np.hypot(offsets[:, 0], offsets[:, 1]) > far_radius
+        s[np.ix_(far, bad_rows, np.arange(w))] = s_wrong
+        flows = (offsets[:, None, None, :] * s[..., None]).astype(np.float32)
+        flows[ref] = np.nan
+        weights = np.ones((n, h, w), np.float32)
+        weights[ref] = 0
+        seen = np.ones((n, h, w), bool)
+        seen[ref] = False
+        return flows, weights, seen
+
+    monkeypatch.setattr(lfcam.depth, "_flows_and_seen", fake)
+    views = np.random.default_rng(0).random((n, h, w, 3)).astype(np.float32)
+    return views, offsets, reference
+
+
+def test_many_views_fall_back_to_the_near_views_where_far_ones_fail(monkeypatch) -> None:
+    # 9 x 9: the 56 views outside the inner 5 x 5 agree on a wrong parallax in rows
+    # 10..19; all of them together outvote the 24 near views there (and lose more than
+    # a quarter of the views: unsure); the near views' own triangulation is exact.
+    bad = np.arange(10, 20)
+    views, offsets, ref = _crafted_flows(monkeypatch, (9, 9), 0.5, 1.5, bad, 2.9)
+    near = lfcam.depth.near_views(offsets, ref)
+    assert near is not None
+    assert near.tolist() == [r * 9 + c for r in range(2, 7) for c in range(2, 7)]
+    res = lfcam.depth_from_views(views, offsets, ref, fill=False)
+    np.testing.assert_allclose(res.parallax, 0.5, atol=1e-4)
+    assert (res.n_used[bad] == 24).all()
+    assert (res.n_used[:10] == 80).all()
+    # Without the second triangulation (too few near views to trust), the far views win.
+    monkeypatch.setattr(lfcam.depth, "NEAR_VIEWS_MIN", 25)
+    res = lfcam.depth_from_views(views, offsets, ref, fill=False)
+    assert abs(float(np.median(res.parallax[bad])) - 1.5) < 1e-3
+
+
+def test_few_views_have_no_near_set() -> None:
+    # 3 x 4 (the reference camera), 3 x 3 and 5 x 5: too few near views to trust alone.
+    for rows, cols in ((3, 4), (3, 3), (5, 5)):
+        rr, rc = (rows - 1) // 2, (cols - 1) // 2
+        off = np.array([[c - rc, r - rr] for r in range(rows) for c in range(cols)], np.float64)
+        assert lfcam.depth.near_views(off, rr * cols + rc) is None

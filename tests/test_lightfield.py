@@ -635,6 +635,24 @@ def test_depth_views_on_antinous(tmp_path, capsys) -> None:
 
 
 @needs_antinous
+def test_antinous_issue_targets_and_the_full_grid_does_no_worse() -> None:
+    # Issue 5 on real data (the depth chain's defaults, no special mode): the 3 x 4
+    # subset reaches BadPix0.07 <= 10% and MSE x 100 <= 5 (measured 9.32% / 4.63), and
+    # the full 9 x 9 grid is at least as good on both (measured 7.07% / 4.44: the near
+    # views' second triangulation and the fill's support test; without them 10.6% / 21.2).
+    gt = read_pfm(ANTINOUS / "gt_disp_lowres.pfm")
+    scores = {}
+    for views in ("3:6,3:7", "0:9,0:9"):
+        lf = LightField.from_folder(ANTINOUS, views=views, reference=(4, 4))
+        scores[views] = disparity_metrics(lf.estimate_depth().parallax, gt)
+    small, full = scores["3:6,3:7"], scores["0:9,0:9"]
+    assert small["badpix_percent"] <= 10.0, small
+    assert small["mse_x100"] <= 5.0, small
+    assert full["badpix_percent"] <= small["badpix_percent"], scores
+    assert full["mse_x100"] <= small["mse_x100"], scores
+
+
+@needs_antinous
 def test_antinous_pfm_round_trip_is_byte_exact(tmp_path) -> None:
     src = ANTINOUS / "gt_disp_lowres.pfm"
     write_pfm(tmp_path / "gt.pfm", read_pfm(src))

@@ -24,6 +24,8 @@ __all__ = [
     "FILL_MAX_RESIDUAL",
     "FILL_MIN_SUPPORT",
     "FILL_MIN_USED",
+    "FILL_SUPPORT_MIN_VIEWS",
+    "NEAR_VIEWS_MIN",
     "DepthResult",
     "compute_flows",
     "depth_from_parallax",
@@ -31,6 +33,7 @@ __all__ = [
     "estimate_depth",
     "fill_parallax",
     "guide_image",
+    "near_views",
 ]
 
 #: :func:`fill_parallax` refills a pixel whose triangulation residual exceeds this
@@ -46,12 +49,29 @@ FILL_MIN_USED = 0.75
 #: that (its ``support``: the total weight over the window's grid positions) is not
 #: filled from it: its median would come from neighbours of another colour (the
 #: colour weight is tiny but a median only sees relative weights). It goes to the
-#: wider second pass instead. Off by default (0): measured with 0.002, HCI antinous
-#: (``benchmarks/hci.py``) 5 x 5 BadPix0.07 / MSE x 100 7.5% / 8.85 -> 7.3% / 4.4 and
-#: 9 x 9 10.6% / 21.2 -> 10.0% / 10.9, 3 x 4 and 3 x 3 unchanged; but the simulated
-#: layered scene 1.5% -> 3.7% of pixels off by > 5%, and lower PSNR of novel views
-#: and super-resolution there (``tests/test_render.py``, ``tests/test_superres.py``).
-FILL_MIN_SUPPORT = 0.0
+#: wider second pass instead. :func:`depth_from_views` uses it for light fields of at
+#: least :data:`FILL_SUPPORT_MIN_VIEWS` views, where the far views' occlusion bands are
+#: wide; :func:`fill_parallax` alone has it off (0). Measured with it (HCI antinous,
+#: ``benchmarks/hci.py``, BadPix0.07 / MSE x 100): 5 x 5 7.5% / 8.85 -> 7.3% / 4.4,
+#: 9 x 9 (with :data:`NEAR_VIEWS_MIN`'s second triangulation) 7.35% / 9.15 -> 7.07% /
+#: 4.44; 3 x 4 and 3 x 3 unchanged; but on the simulated 3 x 4 camera's layered scene
+#: 1.5% -> 3.7% of pixels off by > 5% (a strip between the image circle's edge and a
+#: card took the card's parallax in the wider pass), and lower PSNR of novel views and
+#: super-resolution there (``tests/test_render.py``, ``tests/test_superres.py``).
+FILL_MIN_SUPPORT = 0.002
+#: Views (the reference included) from which :func:`depth_from_views` fills with
+#: :data:`FILL_MIN_SUPPORT`; below, with 0.
+FILL_SUPPORT_MIN_VIEWS = 25
+#: With many views (a 9 x 9 light field), the far views' flows fail first near
+#: occlusions: content moves furthest there. A pixel that the triangulation over all
+#: views leaves unsure (:func:`fill_parallax`'s criteria) takes a second triangulation
+#: over the near views (:func:`near_views`) where that one is sure, before any fill;
+#: when there are at least this many near views besides the reference. Measured on
+#: HCI antinous 9 x 9 (``benchmarks/hci.py``; near views: the inner 5 x 5), BadPix0.07
+#: / MSE x 100 10.0% / 11.2 -> 7.1% / 4.4 (both with :data:`FILL_MIN_SUPPORT`). Fewer
+#: near views pass mixed pixels as sure: a further step down to the inner 3 x 3 made it
+#: 9.3% / 5.6.
+NEAR_VIEWS_MIN = 24
 
 #: DIS parameters for depth: fine patches, dense stride, variational refinement, at
 #: full resolution (``benchmarks/flow_tuning.py``: Middlebury "other" mean end-point
@@ -149,8 +169,8 @@ def _flows_and_seen(
     margin: int | None = None,
     backward: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`compute_flows`, and per reference pixel the number of other views that
-    see it (its forward flow lands inside that view's data, consistent or not), uint8.
+    """:func:`compute_flows`, and which views see each reference pixel: ``(N, H, W)``
+    bool, True where the forward flow lands inside that view's data, consistent or not.
 
     ``margin``: compute the flows only in the bounding box of the reference's data
     grown by this many px (content moves at most about that far), not over the whole
@@ -166,7 +186,7 @@ def _flows_and_seen(
     seen = np.zeros((N, H, W), bool)
     ys, xs = np.nonzero(valid[reference])
     if ys.size == 0:
-        return flows, weights, seen.sum(axis=0).astype(np.uint8)
+        return flows, weights, seen
     if margin is None:
         win = np.s_[0:H, 0:W]
     else:
@@ -199,7 +219,7 @@ def _flows_and_seen(
     others = [i for i in range(N) if i != reference]
     with ThreadPoolExecutor(max_workers=max(1, threads)) as ex:
         list(ex.map(one, others))
-    return flows, weights, seen.sum(axis=0).astype(np.uint8)
+    return flows, weights, seen
 
 
 def guide_image(image: np.ndarray) -> np.ndarray:
@@ -223,6 +243,38 @@ def guide_image(image: np.ndarray) -> np.ndarray:
     return np.where(finite[..., None], lab, np.nan).astype(np.float32)
 
 
+def _unsure(
+    residual: np.ndarray | None,
+    n_used: np.ndarray | None,
+    n_seen: np.ndarray | None,
+    max_residual: float,
+    min_used: float,
+) -> np.ndarray | bool:
+    """Where a triangulation is not to be trusted: the views disagree (``residual >
+    max_residual``) or it lost more than ``1 - min_used`` of the views that see it."""
+    unsure: np.ndarray | bool = False
+    if residual is not None:
+        with np.errstate(invalid="ignore"):
+            unsure = unsure | (np.asarray(residual, np.float32) > max_residual)
+    if n_used is not None and n_seen is not None:
+        unsure = unsure | (
+            np.asarray(n_used, np.float32) < min_used * np.asarray(n_seen, np.float32)
+        )
+    return unsure
+
+
+def near_views(offsets: np.ndarray, reference: int) -> np.ndarray | None:
+    """The views of :data:`NEAR_VIEWS`' second triangulation: those within half the
+    largest parallax vector of the reference (``|o_i| <= max |o_j| / 2``), reference
+    included, as sorted indices; None when fewer than :data:`NEAR_VIEWS_MIN` others."""
+    length = np.hypot(offsets[:, 0], offsets[:, 1])
+    near = np.nonzero(length <= 0.5 * length.max() * (1 + 1e-9))[0]
+    if near.size - 1 < NEAR_VIEWS_MIN or near.size == len(offsets):
+        return None
+    assert reference in near
+    return near
+
+
 def fill_parallax(
     parallax: np.ndarray,
     confidence: np.ndarray,
@@ -234,7 +286,7 @@ def fill_parallax(
     where: np.ndarray | None = None,
     max_residual: float = FILL_MAX_RESIDUAL,
     min_used: float = FILL_MIN_USED,
-    min_support: float = FILL_MIN_SUPPORT,
+    min_support: float = 0.0,
     threshold: float | None = None,
     radius: int = 20,
     stride: int = 2,
@@ -273,8 +325,10 @@ def fill_parallax(
     where : (H, W) bool array, optional
         Pixels that may be filled (default: all): where the reference and at least
         one other view see, so that nothing is extrapolated beyond the data.
-    max_residual, min_used, min_support : float
-        See :data:`FILL_MAX_RESIDUAL`, :data:`FILL_MIN_USED`, :data:`FILL_MIN_SUPPORT`.
+    max_residual, min_used : float
+        See :data:`FILL_MAX_RESIDUAL`, :data:`FILL_MIN_USED`.
+    min_support : float
+        See :data:`FILL_MIN_SUPPORT`; 0 (default) switches the test off.
     threshold : float, optional
         Also refill pixels whose confidence is below this.
     radius, stride : int
@@ -311,10 +365,7 @@ def fill_parallax(
     for name, arr in (("residual", residual), ("n_used", n_used), ("n_seen", n_seen)):
         if arr is not None and np.shape(arr) != s.shape:
             raise InputError(f"{name}: expected shape {s.shape}, got {np.shape(arr)}")
-    if residual is not None:
-        unsure |= np.asarray(residual, np.float32) > max_residual
-    if n_used is not None and n_seen is not None:
-        unsure |= np.asarray(n_used, np.float32) < min_used * np.asarray(n_seen, np.float32)
+    unsure |= _unsure(residual, n_used, n_seen, max_residual, min_used)
     if threshold is not None:
         unsure |= c < threshold
     weights = np.where(unsure, 0.0, c).astype(np.float32)
@@ -432,34 +483,57 @@ def depth_from_views(
     # Content moves by o_i s; |s| <= 2 covers a scene from half the board's
     # distance to infinity on the reference camera, and light fields' |s| of a few px.
     margin = int(np.ceil(2.0 * np.abs(offsets).max())) + 16
-    flows, weights, n_seen = _flows_and_seen(
+    flows, weights, seen = _flows_and_seen(
         views, int(reference), flow, 0.75, threads, margin=margin, backward=backward
     )
     t1 = time.perf_counter()
     tri = triangulate(flows, offsets, int(reference), weights, **triangulation)
+    n_seen = seen.sum(axis=0, dtype=np.uint8)
+    out = {k: getattr(tri, k) for k in _TRI_FIELDS}
+    near = near_views(offsets, int(reference))
+    if near is not None:
+        # Where all views together are unsure, the near views' own triangulation.
+        ref_near = int(np.searchsorted(near, int(reference)))
+        tri_near = triangulate(flows[near], offsets[near], ref_near, weights[near], **triangulation)
+        seen_near = seen[near].sum(axis=0, dtype=np.uint8)
+        unsure_all = _unsure(tri.residual, tri.n_used, n_seen, FILL_MAX_RESIDUAL, FILL_MIN_USED)
+        unsure_near = _unsure(
+            tri_near.residual, tri_near.n_used, seen_near, FILL_MAX_RESIDUAL, FILL_MIN_USED
+        )
+        take = (unsure_all | ~np.isfinite(tri.parallax)) & ~(
+            unsure_near | ~np.isfinite(tri_near.parallax)
+        )
+        for k in _TRI_FIELDS:
+            out[k] = np.where(take, getattr(tri_near, k), out[k])
+        n_seen = np.where(take, seen_near, n_seen)
+    del flows, weights, seen
     t2 = time.perf_counter()
     timings = {"flow": t1 - t0, "triangulation": t2 - t1}
-    parallax, confidence, filled = tri.parallax, tri.confidence, None
+    parallax, confidence, filled = out["parallax"], out["confidence"], None
     if fill:
         parallax, confidence, filled = fill_parallax(
             parallax,
             confidence,
             guide_image(views[int(reference)]),
-            residual=tri.residual,
-            n_used=tri.n_used,
+            residual=out["residual"],
+            n_used=out["n_used"],
             n_seen=n_seen,
             where=n_seen > 0,
+            min_support=FILL_MIN_SUPPORT if len(offsets) >= FILL_SUPPORT_MIN_VIEWS else 0.0,
         )
         timings["fill"] = time.perf_counter() - t2
     return DepthResult(
         parallax=parallax,
         confidence=confidence,
-        residual=tri.residual,
-        perpendicular=tri.perpendicular,
-        n_used=tri.n_used,
+        residual=out["residual"],
+        perpendicular=out["perpendicular"],
+        n_used=out["n_used"],
         filled=filled,
         timings=timings,
     )
+
+
+_TRI_FIELDS = ("parallax", "confidence", "residual", "perpendicular", "n_used")
 
 
 def estimate_depth(views: np.ndarray, cal: Calibration, **kwargs: Any) -> DepthResult:
