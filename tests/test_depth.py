@@ -97,7 +97,7 @@ def _crafted_flows(monkeypatch, grid, s_true, s_wrong, bad_rows, far_radius):
         weights[ref] = 0
         seen = np.ones((n, h, w), bool)
         seen[ref] = False
-        return flows, weights, seen
+        return flows, weights, seen, (slice(0, h), slice(0, w))
 
     monkeypatch.setattr(lfcam.depth, "_flows_and_seen", fake)
     views = np.random.default_rng(0).random((n, h, w, 3)).astype(np.float32)

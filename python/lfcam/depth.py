@@ -155,7 +155,7 @@ def compute_flows(
     weights : (N, H, W) float32
         1 where the flow passed the checks, 0 elsewhere.
     """
-    flows, weights, _ = _flows_and_seen(views, reference, params, fb_threshold, threads)
+    flows, weights, _, _ = _flows_and_seen(views, reference, params, fb_threshold, threads)
     return flows, weights
 
 
@@ -168,32 +168,35 @@ def _flows_and_seen(
     *,
     margin: int | None = None,
     backward: bool = True,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`compute_flows`, and which views see each reference pixel: ``(N, H, W)``
-    bool, True where the forward flow lands inside that view's data, consistent or not.
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[slice, slice]]:
+    """:func:`compute_flows` over a window of the frame, which views see each of its
+    pixels (``(N, h, w)`` bool: the forward flow lands inside that view's data,
+    consistent or not), and the window (rows, columns); outside it the reference sees
+    nothing.
 
-    ``margin``: compute the flows only in the bounding box of the reference's data
-    grown by this many px (content moves at most about that far), not over the whole
-    rectified frame, most of which the reference does not see on a lenslet camera.
+    ``margin``: the window is the bounding box of the reference's data grown by this
+    many px (content moves at most about that far), not the whole rectified frame,
+    most of which the reference does not see on a lenslet camera; None: the frame.
     ``backward=False`` skips the backward flows and the consistency check.
     """
     from .warp import remap_bilinear
 
     N, H, W = views.shape[:3]
     valid = np.isfinite(views).all(-1) if views.ndim == 4 else np.isfinite(views)
-    flows = np.full((N, H, W, 2), np.nan, np.float32)
-    weights = np.zeros((N, H, W), np.float32)
-    seen = np.zeros((N, H, W), bool)
     ys, xs = np.nonzero(valid[reference])
-    if ys.size == 0:
-        return flows, weights, seen
-    if margin is None:
-        win = np.s_[0:H, 0:W]
+    if margin is None or ys.size == 0:
+        win = (slice(0, H), slice(0, W))
     else:
-        win = np.s_[
-            max(0, int(ys.min()) - margin) : min(H, int(ys.max()) + 1 + margin),
-            max(0, int(xs.min()) - margin) : min(W, int(xs.max()) + 1 + margin),
-        ]
+        win = (
+            slice(max(0, int(ys.min()) - margin), min(H, int(ys.max()) + 1 + margin)),
+            slice(max(0, int(xs.min()) - margin), min(W, int(xs.max()) + 1 + margin)),
+        )
+    h, w = win[0].stop - win[0].start, win[1].stop - win[1].start
+    flows = np.full((N, h, w, 2), np.nan, np.float32)
+    weights = np.zeros((N, h, w), np.float32)
+    seen = np.zeros((N, h, w), bool)
+    if ys.size == 0:
+        return flows, weights, seen, win
     sub = views[(slice(None), *win)]
     sub_valid = valid[(slice(None), *win)]
     grid = _grid(*sub.shape[1:3])
@@ -212,14 +215,14 @@ def _flows_and_seen(
             b = dis_flow(view_prepared, ref_prepared, params)
             back = remap_bilinear(b, target)
             ok = inside & (np.hypot(*np.moveaxis(f + back, -1, 0)) < fb_threshold)
-        flows[(i, *win)] = np.where(ok[..., None], f, np.nan)
-        weights[(i, *win)] = ok
-        seen[(i, *win)] = inside
+        flows[i] = np.where(ok[..., None], f, np.nan)
+        weights[i] = ok
+        seen[i] = inside
 
     others = [i for i in range(N) if i != reference]
     with ThreadPoolExecutor(max_workers=max(1, threads)) as ex:
         list(ex.map(one, others))
-    return flows, weights, seen
+    return flows, weights, seen, win
 
 
 def guide_image(image: np.ndarray) -> np.ndarray:
@@ -483,7 +486,7 @@ def depth_from_views(
     # Content moves by o_i s; |s| <= 2 covers a scene from half the board's
     # distance to infinity on the reference camera, and light fields' |s| of a few px.
     margin = int(np.ceil(2.0 * np.abs(offsets).max())) + 16
-    flows, weights, seen = _flows_and_seen(
+    flows, weights, seen, win = _flows_and_seen(
         views, int(reference), flow, 0.75, threads, margin=margin, backward=backward
     )
     t1 = time.perf_counter()
@@ -514,7 +517,7 @@ def depth_from_views(
         parallax, confidence, filled = fill_parallax(
             parallax,
             confidence,
-            guide_image(views[int(reference)]),
+            guide_image(views[(int(reference), *win)]),
             residual=out["residual"],
             n_used=out["n_used"],
             n_seen=n_seen,
@@ -522,15 +525,27 @@ def depth_from_views(
             min_support=FILL_MIN_SUPPORT if len(offsets) >= FILL_SUPPORT_MIN_VIEWS else 0.0,
         )
         timings["fill"] = time.perf_counter() - t2
+    shape = views.shape[1:3]
     return DepthResult(
-        parallax=parallax,
-        confidence=confidence,
-        residual=out["residual"],
-        perpendicular=out["perpendicular"],
-        n_used=out["n_used"],
-        filled=filled,
+        parallax=_paste(parallax, win, shape, np.nan),
+        confidence=_paste(confidence, win, shape, 0),
+        residual=_paste(out["residual"], win, shape, np.nan),
+        perpendicular=_paste(out["perpendicular"], win, shape, np.nan),
+        n_used=_paste(out["n_used"], win, shape, 0),
+        filled=None if filled is None else _paste(filled, win, shape, False),
         timings=timings,
     )
+
+
+def _paste(
+    a: np.ndarray, win: tuple[slice, slice], shape: tuple[int, ...], value: Any
+) -> np.ndarray:
+    """``a`` (a window's values) in a frame of ``shape`` filled with ``value`` elsewhere."""
+    if a.shape == tuple(shape):
+        return a
+    out = np.full(shape, value, a.dtype)
+    out[win] = a
+    return out
 
 
 _TRI_FIELDS = ("parallax", "confidence", "residual", "perpendicular", "n_used")
