@@ -14,7 +14,10 @@ stride 3, 25 gradient-descent and 5 variational iterations. Sub-pixel precision 
 what depth needs (0.07 px BadPix on HCI); the finest scale is what buys it: the
 same settings at finest scale 1 (OpenCV's MEDIUM) are 4x faster but give 24% BadPix
 on HCI antinous 3 x 4 instead of 9.5%, and variational refinement at full
-resolution after a scale-1 DIS recovers only part of it (18-19%).
+resolution after a scale-1 DIS recovers only part of it (18-19%). Views much
+larger than HCI's (the full-size camera's 1200 x 900) are sampled finely enough for
+half resolution: ``lfcam.depth.depth_flow`` picks the finest scale by the flow
+window's size (``FLOW_MAX_PIXELS``).
 """
 
 from __future__ import annotations

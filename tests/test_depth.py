@@ -3,6 +3,7 @@ synthetic two-layer light field with exact truth, and argument checks."""
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import cv2
@@ -129,3 +130,31 @@ def test_few_views_have_no_near_set() -> None:
         rr, rc = (rows - 1) // 2, (cols - 1) // 2
         off = np.array([[c - rc, r - rr] for r in range(rows) for c in range(cols)], np.float64)
         assert lfcam.depth.near_views(off, rr * cols + rc) is None
+
+
+def test_flow_resolution_follows_the_window_size(monkeypatch) -> None:
+    # Full resolution up to FLOW_MAX_PIXELS (the simulator's and HCI's views), half
+    # resolution for the full-size camera's 1.8 Mpx window, and so on.
+    from lfcam.depth import DEPTH_FLOW, FLOW_MAX_PIXELS, depth_flow
+
+    assert FLOW_MAX_PIXELS == 1_000_000
+    scales = [depth_flow(n).finest_scale for n in (300_000, 1_000_000, 1_800_000, 4_000_001)]
+    assert scales == [0, 0, 1, 2]
+    assert depth_flow(1_800_000) == dataclasses.replace(DEPTH_FLOW, finest_scale=1)
+    # depth_from_views uses it for its window unless told otherwise.
+    used = []
+    real = lfcam.depth.dis_flow
+
+    def spy(a, b, params=None, init=None):
+        used.append((a.shape, params.finest_scale))
+        return real(a, b, params, init)
+
+    monkeypatch.setattr(lfcam.depth, "dis_flow", spy)
+    monkeypatch.setattr(lfcam.depth, "FLOW_MAX_PIXELS", 10000)
+    views, offsets, ref, _ = _two_layers()
+    lfcam.depth_from_views(views, offsets, ref, fill=False)
+    assert {s for _, s in used} == {1}
+    assert all(10000 < shape[0] * shape[1] <= 4 * 10000 for shape, _ in used)
+    used.clear()
+    lfcam.depth_from_views(views, offsets, ref, fill=False, flow=DEPTH_FLOW)
+    assert {s for _, s in used} == {0}

@@ -9,7 +9,7 @@ of the parallax ``s`` in the Rust core -> metric depth
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import cv2
@@ -25,9 +25,11 @@ __all__ = [
     "FILL_MIN_SUPPORT",
     "FILL_MIN_USED",
     "FILL_SUPPORT_MIN_VIEWS",
+    "FLOW_MAX_PIXELS",
     "NEAR_VIEWS_MIN",
     "DepthResult",
     "compute_flows",
+    "depth_flow",
     "depth_from_parallax",
     "depth_from_views",
     "estimate_depth",
@@ -78,6 +80,26 @@ NEAR_VIEWS_MIN = 24
 #: error 0.254 px against 0.333 for OpenCV's MEDIUM preset; on HCI antinous 3 x 4
 #: finest scale 1 instead of 0 raises BadPix0.07 from 9.5% to 24%).
 DEPTH_FLOW = FlowParams(patch_size=8, patch_stride=3, variational_iterations=5)
+#: Without ``flow`` parameters, :func:`depth_from_views` runs :data:`DEPTH_FLOW` at the
+#: finest scale (0, 1, ...) whose image has at most this many pixels: full resolution
+#: for views of up to about 1 Mpx with the window's margin (the simulator's 480 x 360
+#: views, HCI's 512 x 512), half resolution for the full-size camera's 1200 x 900 views
+#: (a 1.8 Mpx window). There, measured on the simulator's full-size camera
+#: (``benchmarks/pipeline.py --size full``; planes / spheres / layered), half
+#: resolution keeps the median |dZ|/Z at 0.04% (0.02-0.03% at full resolution) and
+#: the share of pixels off by > 5% at 2.55 / 0.38 / 1.58% (2.55 / 0.32 / 1.06%), for a
+#: third of the flow time (11.5 s instead of 34 s at load 9) and a quarter of DIS's
+#: memory (96 MB instead of 373 MB per concurrent flow).
+FLOW_MAX_PIXELS = 1_000_000
+
+
+def depth_flow(n_pixels: int) -> FlowParams:
+    """:data:`DEPTH_FLOW` at the finest scale for a flow window of ``n_pixels``
+    (see :data:`FLOW_MAX_PIXELS`)."""
+    scale = 0
+    while n_pixels > FLOW_MAX_PIXELS * 4**scale:
+        scale += 1
+    return replace(DEPTH_FLOW, finest_scale=scale)
 
 
 @dataclass
@@ -140,7 +162,7 @@ def compute_flows(
     reference : int
         Reference view index.
     params : FlowParams, optional
-        DIS parameters (default :data:`DEPTH_FLOW`).
+        DIS parameters (default :func:`depth_flow` of the flow window's size).
     fb_threshold : float
         Pixels whose forward-backward round trip misses by more than this (px)
         get weight 0 (occlusions, flow failures).
@@ -200,7 +222,7 @@ def _flows_and_seen(
     sub = views[(slice(None), *win)]
     sub_valid = valid[(slice(None), *win)]
     grid = _grid(*sub.shape[1:3])
-    params = params or DEPTH_FLOW
+    params = params or depth_flow(h * w)
     ref_prepared = prepare(sub[reference])
 
     def one(i: int) -> None:
@@ -435,7 +457,7 @@ def depth_from_views(
     reference : int
         Reference view index.
     flow : FlowParams, optional
-        DIS parameters (default :data:`DEPTH_FLOW`).
+        DIS parameters (default :func:`depth_flow` of the flow window's size).
     threads : int
         Concurrent flows.
     fill : bool
