@@ -193,22 +193,44 @@ pub fn weighted_median_fill(
                 *so = 0.0;
                 continue;
             }
-            cand.sort_unstable_by(|a, b| a.0.total_cmp(&b.0));
-            let half = 0.5 * total;
-            let mut acc = 0f32;
-            let mut med = f32::NAN;
-            for &(val, wgt) in &cand {
-                acc += wgt;
-                med = val;
-                if acc >= half {
-                    break;
-                }
-            }
-            *vo = med;
+            *vo = weighted_median(&mut cand, 0.5 * total);
             *so = (total / slots).min(1.0);
         }
         Ok(())
     })
+}
+
+/// The first value, in ascending order, at which the weights summed in that order
+/// reach `half`: the weighted median of `(value, weight)` pairs (reordered). Instead of
+/// sorting all of them, quickselect halves keep the part holding the median, and only
+/// a short remainder is sorted and scanned; NaN if the weights never reach `half`.
+fn weighted_median(cand: &mut [(f32, f32)], half: f32) -> f32 {
+    const SORT_BELOW: usize = 24;
+    let cmp = |a: &(f32, f32), b: &(f32, f32)| a.0.total_cmp(&b.0);
+    let mut part = cand;
+    let mut before = 0f32; // weight of the pairs below `part`
+    while part.len() > SORT_BELOW {
+        let mid = part.len() / 2;
+        let (lower, pivot, upper) = part.select_nth_unstable_by(mid, cmp);
+        let low: f32 = lower.iter().map(|c| c.1).sum();
+        if before + low >= half {
+            part = lower;
+        } else if before + low + pivot.1 >= half {
+            return pivot.0;
+        } else {
+            before += low + pivot.1;
+            part = upper;
+        }
+    }
+    part.sort_unstable_by(cmp);
+    let mut acc = before;
+    for &(val, wgt) in part.iter() {
+        acc += wgt;
+        if acc >= half {
+            return val;
+        }
+    }
+    part.last().map_or(f32::NAN, |c| c.0)
 }
 
 #[cfg(test)]
