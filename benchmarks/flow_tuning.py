@@ -31,6 +31,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from lfcam.depth import DEPTH_FLOW
 from lfcam.flow import FlowParams, dis_flow, end_point_error, prepare
 from lfcam.io import read_flo
 
@@ -38,9 +39,10 @@ DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "middlebury_flo
 SEQUENCES = ("RubberWhale", "Hydrangea", "Dimetrodon", "Urban2", "Venus")
 
 CANDIDATES = {
-    "lfcam DEPTH_FLOW": FlowParams(patch_size=8, patch_stride=3, variational_iterations=5),
+    "lfcam DEPTH_FLOW": DEPTH_FLOW,
     "stride 4, 12 gd": FlowParams(patch_stride=4, gradient_descent_iterations=12),
     "patch 12, stride 4": FlowParams(patch_size=12, patch_stride=4),
+    "5 variational": FlowParams(variational_iterations=5),
     "no variational": FlowParams(variational_iterations=0),
     "10 variational": FlowParams(variational_iterations=10),
     "finest scale 1": FlowParams(finest_scale=1),

@@ -20,7 +20,9 @@ from .errors import InputError
 from .flow import FlowParams, dis_flow, prepare
 
 __all__ = [
+    "BACKWARD_COARSER",
     "DEPTH_FLOW",
+    "FB_THRESHOLD",
     "FILL_MAX_RESIDUAL",
     "FILL_MIN_SUPPORT",
     "FILL_MIN_USED",
@@ -75,11 +77,14 @@ FILL_SUPPORT_MIN_VIEWS = 25
 #: 9.3% / 5.6.
 NEAR_VIEWS_MIN = 24
 
-#: DIS parameters for depth: fine patches, dense stride, variational refinement, at
-#: full resolution (``benchmarks/flow_tuning.py``: Middlebury "other" mean end-point
-#: error 0.254 px against 0.333 for OpenCV's MEDIUM preset; on HCI antinous 3 x 4
+#: DIS parameters for depth: fine patches, dense stride, two variational refinement
+#: iterations, at full resolution (``benchmarks/flow_tuning.py``: Middlebury "other"
+#: mean end-point error 0.263 px against 0.333 for OpenCV's MEDIUM preset, 0.254 with
+#: 5 iterations, 0.289 with none; on HCI antinous 3 x 4 (``benchmarks/hci.py``)
+#: BadPix0.07 / MSE x 100 with 0 / 1 / 2 / 5 iterations: 11.2% / 5.2, 9.3% / 4.5,
+#: 8.9% / 4.6, 9.3% / 4.6, for 63 / 93 / 108 / 136 ms of CPU per 512 x 512 flow;
 #: finest scale 1 instead of 0 raises BadPix0.07 from 9.5% to 24%).
-DEPTH_FLOW = FlowParams(patch_size=8, patch_stride=3, variational_iterations=5)
+DEPTH_FLOW = FlowParams(patch_size=8, patch_stride=3, variational_iterations=2)
 #: Without ``flow`` parameters, :func:`depth_from_views` runs :data:`DEPTH_FLOW` at the
 #: finest scale (0, 1, ...) whose image has at most this many pixels: full resolution
 #: for views of up to about 1 Mpx with the window's margin (the simulator's 480 x 360
@@ -91,6 +96,21 @@ DEPTH_FLOW = FlowParams(patch_size=8, patch_stride=3, variational_iterations=5)
 #: third of the flow time (11.5 s instead of 34 s at load 9) and a quarter of DIS's
 #: memory (96 MB instead of 373 MB per concurrent flow).
 FLOW_MAX_PIXELS = 1_000_000
+#: The flow's images are contrast-normalised over Gaussian windows of this sigma
+#: (px at full resolution; :func:`lfcam.flow.prepare`).
+FLOW_SIGMA = 6.0
+#: The backward flows (view -> reference), used only for the forward-backward
+#: consistency check, run this many DIS scales coarser than the forward flows, and a
+#: round trip may miss by up to :data:`FB_THRESHOLD`. Measured on HCI antinous
+#: (``benchmarks/hci.py``; BadPix0.07 / MSE x 100, process CPU seconds): 3 x 4
+#: 8.93% / 4.61, 3.0 s (same scale, 0.75 px) -> 8.66% / 4.64, 1.6 s (a backward flow
+#: costs 22 ms of CPU instead of 108); 5 x 5 7.56% /
+#: 4.57 -> 7.54% / 4.39; 3 x 3 11.05% / 5.5 -> 10.5% / 5.6. A coarser backward
+#: flow with the old 0.75 px threshold refilled too much (3 x 4 MSE x 100 7.8).
+BACKWARD_COARSER = 1
+#: Forward-backward round-trip tolerance, px at full resolution (see
+#: :data:`BACKWARD_COARSER`).
+FB_THRESHOLD = 1.5
 
 
 def depth_flow(n_pixels: int) -> FlowParams:
@@ -150,7 +170,7 @@ def compute_flows(
     reference: int,
     *,
     params: FlowParams | None = None,
-    fb_threshold: float = 0.75,
+    fb_threshold: float = FB_THRESHOLD,
     threads: int = 2,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Flow from the reference view to each view, with forward-backward weights.
@@ -165,7 +185,8 @@ def compute_flows(
         DIS parameters (default :func:`depth_flow` of the flow window's size).
     fb_threshold : float
         Pixels whose forward-backward round trip misses by more than this (px)
-        get weight 0 (occlusions, flow failures).
+        get weight 0 (occlusions, flow failures). The backward flows run
+        :data:`BACKWARD_COARSER` scales coarser than the forward ones.
     threads : int
         Flows computed concurrently (OpenCV releases the GIL).
 
@@ -204,8 +225,9 @@ def _flows_and_seen(
     from .warp import remap_bilinear
 
     N, H, W = views.shape[:3]
-    valid = np.isfinite(views).all(-1) if views.ndim == 4 else np.isfinite(views)
-    ys, xs = np.nonzero(valid[reference])
+    ref_frame = views[reference]
+    valid = np.isfinite(ref_frame).all(-1) if views.ndim == 4 else np.isfinite(ref_frame)
+    ys, xs = np.nonzero(valid)
     if margin is None or ys.size == 0:
         win = (slice(0, H), slice(0, W))
     else:
@@ -219,27 +241,65 @@ def _flows_and_seen(
     seen = np.zeros((N, h, w), bool)
     if ys.size == 0:
         return flows, weights, seen, win
-    sub = views[(slice(None), *win)]
-    sub_valid = valid[(slice(None), *win)]
-    grid = _grid(*sub.shape[1:3])
     params = params or depth_flow(h * w)
-    ref_prepared = prepare(sub[reference])
+    # Finest scale k > 0: the flow runs at 1 / 2**k of the resolution, so everything
+    # before the final flows runs there too (the views' block means, their
+    # normalisation, DIS at its finest scale 0, the checks), then the flows and the
+    # checks' results are interpolated back to the window (pixel centres aligned).
+    f = 2**params.finest_scale
+    params = replace(params, finest_scale=0)
+    back_params = replace(params, finest_scale=BACKWARD_COARSER)
+
+    def low(i: int) -> tuple[np.ndarray, np.ndarray]:
+        """View i over the window at the flow's resolution (block means, NaN where a
+        block is not all data), and where it has data."""
+        v = views[(i, *win)]
+        if f > 1:
+            if h % f or w % f:
+                pad = [(0, -h % f), (0, -w % f)] + [(0, 0)] * (v.ndim - 2)
+                v = np.pad(v, pad, constant_values=np.nan)
+            # An integer factor: OpenCV's area resize is the block mean (NaN spreads).
+            v = cv2.resize(
+                np.ascontiguousarray(v, np.float32),
+                (v.shape[1] // f, v.shape[0] // f),
+                interpolation=cv2.INTER_AREA,
+            )
+        return v, (np.isfinite(v).all(-1) if v.ndim == 3 else np.isfinite(v))
+
+    ref_low, _ = low(reference)
+    grid = _grid(*ref_low.shape[:2])
+    ref_prepared = prepare(ref_low, sigma=FLOW_SIGMA / f)
+    ref_valid = valid[win]
+    del ref_low
+
+    def full(a: np.ndarray) -> np.ndarray:
+        """A low-resolution array (flow, or a mask as float) back at the window's size."""
+        if f == 1:
+            return a
+        up = cv2.resize(a, (a.shape[1] * f, a.shape[0] * f), interpolation=cv2.INTER_LINEAR)
+        return up[:h, :w]
 
     def one(i: int) -> None:
         # Each worker prepares its own view (OpenCV and numpy release the GIL).
-        view_prepared = prepare(sub[i])
-        f = dis_flow(ref_prepared, view_prepared, params)
-        target = grid + f
-        lands = remap_bilinear(sub_valid[i].astype(np.float32), target)
-        inside = sub_valid[reference] & (lands > 0.999)
-        ok = inside
+        view, view_valid = low(i)
+        view_prepared = prepare(view, sigma=FLOW_SIGMA / f)
+        flow = dis_flow(ref_prepared, view_prepared, params)
+        target = grid + flow
+        lands = remap_bilinear(view_valid.astype(np.float32), target) > 0.999
+        ok = lands
         if backward:
-            b = dis_flow(view_prepared, ref_prepared, params)
+            b = dis_flow(view_prepared, ref_prepared, back_params)
             back = remap_bilinear(b, target)
-            ok = inside & (np.hypot(*np.moveaxis(f + back, -1, 0)) < fb_threshold)
-        flows[i] = np.where(ok[..., None], f, np.nan)
+            ok = lands & (np.hypot(*np.moveaxis(flow + back, -1, 0)) < fb_threshold / f)
+        if f > 1:
+            flow = full(flow) * np.float32(f)
+            # A pixel passes where all the low-resolution pixels around it passed.
+            ok = full(ok.astype(np.float32)) > 0.999
+            lands = full(lands.astype(np.float32)) > 0.5
+        ok &= ref_valid
+        flows[i] = np.where(ok[..., None], flow, np.nan)
         weights[i] = ok
-        seen[i] = inside
+        seen[i] = lands & ref_valid
 
     others = [i for i in range(N) if i != reference]
     with ThreadPoolExecutor(max_workers=max(1, threads)) as ex:
@@ -509,7 +569,7 @@ def depth_from_views(
     # distance to infinity on the reference camera, and light fields' |s| of a few px.
     margin = int(np.ceil(2.0 * np.abs(offsets).max())) + 16
     flows, weights, seen, win = _flows_and_seen(
-        views, int(reference), flow, 0.75, threads, margin=margin, backward=backward
+        views, int(reference), flow, FB_THRESHOLD, threads, margin=margin, backward=backward
     )
     t1 = time.perf_counter()
     tri = triangulate(flows, offsets, int(reference), weights, **triangulation)
