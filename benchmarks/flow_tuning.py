@@ -42,6 +42,8 @@ CANDIDATES = {
     "lfcam DEPTH_FLOW": DEPTH_FLOW,
     "stride 4, 12 gd": FlowParams(patch_stride=4, gradient_descent_iterations=12),
     "patch 12, stride 4": FlowParams(patch_size=12, patch_stride=4),
+    "3 variational": FlowParams(variational_iterations=3),
+    "4 variational": FlowParams(variational_iterations=4),
     "5 variational": FlowParams(variational_iterations=5),
     "no variational": FlowParams(variational_iterations=0),
     "10 variational": FlowParams(variational_iterations=10),

@@ -134,13 +134,13 @@ def test_few_views_have_no_near_set() -> None:
 
 def test_flow_resolution_follows_the_window_size(monkeypatch) -> None:
     # Full resolution up to FLOW_MAX_PIXELS (the simulator's and HCI's views), half
-    # resolution for the full-size camera's 1.8 Mpx window, and so on.
-    from lfcam.depth import BACKWARD_COARSER, DEPTH_FLOW, FLOW_MAX_PIXELS, depth_flow
+    # resolution for the full-size camera's 0.95 Mpx window, and so on.
+    from lfcam.depth import BACKWARD_SCALE, DEPTH_FLOW, FLOW_MAX_PIXELS, depth_flow
 
-    assert FLOW_MAX_PIXELS == 1_000_000
-    scales = [depth_flow(n).finest_scale for n in (300_000, 1_000_000, 1_800_000, 4_000_001)]
+    assert FLOW_MAX_PIXELS == 500_000
+    scales = [depth_flow(n).finest_scale for n in (300_000, 500_000, 950_000, 2_000_001)]
     assert scales == [0, 0, 1, 2]
-    assert depth_flow(1_800_000) == dataclasses.replace(DEPTH_FLOW, finest_scale=1)
+    assert depth_flow(950_000) == dataclasses.replace(DEPTH_FLOW, finest_scale=1)
     # depth_from_views uses it for its window unless told otherwise.
     used = []
     real = lfcam.depth.dis_flow
@@ -154,12 +154,14 @@ def test_flow_resolution_follows_the_window_size(monkeypatch) -> None:
     views, offsets, ref, _ = _two_layers()  # 160 x 200: a 32000 px window
     lfcam.depth_from_views(views, offsets, ref, fill=False)
     # Scale 1: the views are reduced to 80 x 100 first, DIS runs at its finest scale
-    # forward, BACKWARD_COARSER scales coarser backward; one of each per other view.
+    # forward and backward (BACKWARD_SCALE is not finer than that); one of each per view.
     n = len(views) - 1
-    assert sorted(used) == sorted([((80, 100), 0)] * n + [((80, 100), BACKWARD_COARSER)] * n)
+    assert BACKWARD_SCALE == 1
+    assert sorted(used) == [((80, 100), 0)] * (2 * n)
     used.clear()
     lfcam.depth_from_views(views, offsets, ref, fill=False, flow=DEPTH_FLOW)
-    assert sorted(used) == sorted([((160, 200), 0)] * n + [((160, 200), BACKWARD_COARSER)] * n)
+    # Full resolution: the backward flows one scale coarser.
+    assert sorted(used) == [((160, 200), 0)] * n + [((160, 200), 1)] * n
     used.clear()
     lfcam.depth_from_views(views, offsets, ref, fill=False, flow=DEPTH_FLOW, backward=False)
     assert used == [((160, 200), 0)] * n

@@ -20,13 +20,14 @@ from .errors import InputError
 from .flow import FlowParams, dis_flow, prepare
 
 __all__ = [
-    "BACKWARD_COARSER",
+    "BACKWARD_SCALE",
     "DEPTH_FLOW",
     "FB_THRESHOLD",
     "FILL_MAX_RESIDUAL",
     "FILL_MIN_SUPPORT",
     "FILL_MIN_USED",
     "FILL_SUPPORT_MIN_VIEWS",
+    "FLOW_MARGIN",
     "FLOW_MAX_PIXELS",
     "NEAR_VIEWS_MIN",
     "DepthResult",
@@ -77,40 +78,60 @@ FILL_SUPPORT_MIN_VIEWS = 25
 #: 9.3% / 5.6.
 NEAR_VIEWS_MIN = 24
 
-#: DIS parameters for depth: fine patches, dense stride, two variational refinement
-#: iterations, at full resolution (``benchmarks/flow_tuning.py``: Middlebury "other"
-#: mean end-point error 0.263 px against 0.333 for OpenCV's MEDIUM preset, 0.254 with
-#: 5 iterations, 0.289 with none; on HCI antinous 3 x 4 (``benchmarks/hci.py``)
-#: BadPix0.07 / MSE x 100 with 0 / 1 / 2 / 5 iterations: 11.2% / 5.2, 9.3% / 4.5,
-#: 8.9% / 4.6, 9.3% / 4.6, for 63 / 93 / 108 / 136 ms of CPU per 512 x 512 flow;
-#: finest scale 1 instead of 0 raises BadPix0.07 from 9.5% to 24%).
-DEPTH_FLOW = FlowParams(patch_size=8, patch_stride=3, variational_iterations=2)
+#: DIS parameters for depth: fine patches, dense stride, four variational refinement
+#: iterations, at full resolution. ``benchmarks/flow_tuning.py`` (Middlebury "other",
+#: mean end-point error; CPU ms per flow): 2 / 3 / 4 / 5 iterations 0.263 / 0.259 /
+#: 0.255 / 0.254 px, 102 / 103 / 105 / 111 ms, OpenCV's MEDIUM preset 0.333 px; on
+#: Venus only 4 or more stay within 0.01 px of MEDIUM (0.389 against 0.384;
+#: ``tests/test_flow.py``). HCI antinous 3 x 4 (``benchmarks/hci.py``, BadPix0.07 /
+#: MSE x 100, backward flows as :data:`BACKWARD_SCALE`): 2 / 3 / 4 / 5 iterations
+#: 8.66% / 4.64, 8.61% / 4.74, 8.69% / 4.74, 8.84% / 4.74; without variational
+#: refinement 11.2% / 5.2. Finest scale 1 instead of 0 raises BadPix0.07 from 9.5% to 24%.
+DEPTH_FLOW = FlowParams(patch_size=8, patch_stride=3, variational_iterations=4)
 #: Without ``flow`` parameters, :func:`depth_from_views` runs :data:`DEPTH_FLOW` at the
 #: finest scale (0, 1, ...) whose image has at most this many pixels: full resolution
-#: for views of up to about 1 Mpx with the window's margin (the simulator's 480 x 360
-#: views, HCI's 512 x 512), half resolution for the full-size camera's 1200 x 900 views
-#: (a 1.8 Mpx window). There, measured on the simulator's full-size camera
-#: (``benchmarks/pipeline.py --size full``; planes / spheres / layered), half
-#: resolution keeps the median |dZ|/Z at 0.04% (0.02-0.03% at full resolution) and
-#: the share of pixels off by > 5% at 2.55 / 0.38 / 1.58% (2.55 / 0.32 / 1.06%), for a
-#: third of the flow time (11.5 s instead of 34 s at load 9) and a quarter of DIS's
-#: memory (96 MB instead of 373 MB per concurrent flow).
-FLOW_MAX_PIXELS = 1_000_000
+#: for the simulator's 480 x 360 views (a 0.16 Mpx flow window) and HCI's 512 x 512,
+#: half resolution for the full-size camera's 1200 x 900 views (a 0.95 Mpx window).
+#: There, measured on the simulator's full-size camera (``benchmarks/pipeline.py
+#: --size full``; planes / spheres / layered), half resolution keeps the median
+#: |dZ|/Z at 0.04% (0.02-0.03% at full resolution) and the share of pixels off by
+#: > 5% at 2.55 / 0.38 / 1.58% (2.55 / 0.32 / 1.06%), for a third of the flow time
+#: and a quarter of DIS's memory.
+FLOW_MAX_PIXELS = 500_000
+#: The flows run over the bounding box of the reference view's data grown by this
+#: much of the largest parallax vector (plus 16 px), and each view's only over that
+#: box's part where the view has data too (grown the same way: far lenslets' views
+#: overlap the reference's by about half); content that moves further out is lost for
+#: that view only (its flow does not land; other views may still see it). The area
+#: DIS works on (11 flows) and the share of pixels off by > 5% (planes / spheres /
+#: layered), the old whole 2.0 windows against 0.5 with each view's overlap: the
+#: simulator's 3 x 4 camera 3.16 -> 1.35 Mpx, 2.57 / 1.15 / 1.74% -> 2.55 / 1.62 /
+#: 1.65%; the full-size camera 18.5 -> 7.7 Mpx, 2.55 / 0.42 / 2.31% -> 2.55 / 1.05 /
+#: 2.12%; coverage unchanged (99.5%). Less is too little for the far corner view,
+#: which sees the reference's data only near its edge: at 0.25 (1.22 Mpx) the spheres
+#: scene rendered at view 11 (``tests/test_render.py``) fell from 28.1 to 27.9 dB.
+#: (The planes scene's 2.55% is a 24 px gap onto a far background that only one to
+#: three views see.)
+FLOW_MARGIN = 0.5
 #: The flow's images are contrast-normalised over Gaussian windows of this sigma
 #: (px at full resolution; :func:`lfcam.flow.prepare`).
 FLOW_SIGMA = 6.0
 #: The backward flows (view -> reference), used only for the forward-backward
-#: consistency check, run this many DIS scales coarser than the forward flows, and a
-#: round trip may miss by up to :data:`FB_THRESHOLD`. Measured on HCI antinous
-#: (``benchmarks/hci.py``; BadPix0.07 / MSE x 100, process CPU seconds): 3 x 4
-#: 8.93% / 4.61, 3.0 s (same scale, 0.75 px) -> 8.66% / 4.64, 1.6 s (a backward flow
-#: costs 22 ms of CPU instead of 108); 5 x 5 7.56% /
-#: 4.57 -> 7.54% / 4.39; 3 x 3 11.05% / 5.5 -> 10.5% / 5.6. A coarser backward
-#: flow with the old 0.75 px threshold refilled too much (3 x 4 MSE x 100 7.8).
-BACKWARD_COARSER = 1
-#: Forward-backward round-trip tolerance, px at full resolution (see
-#: :data:`BACKWARD_COARSER`).
-FB_THRESHOLD = 1.5
+#: consistency check, run at this finest scale of the full resolution (1: half
+#: resolution) or at the forward flows' scale if that is coarser; a round trip may
+#: miss by :data:`FB_THRESHOLD` times the backward flow's pixel size relative to the
+#: forward's. Measured on HCI antinous (``benchmarks/hci.py``; BadPix0.07 / MSE x 100,
+#: process CPU seconds), scale 0 / 0.75 px against 1 / 1.5 px: 3 x 4 8.93% / 4.61,
+#: 3.0 s -> 8.66% / 4.64, 1.6 s (a backward flow costs 22 ms of CPU instead of 108);
+#: 5 x 5 7.56% / 4.57 -> 7.54% / 4.39; 3 x 3 11.05% / 5.5 -> 10.5% / 5.6 (and with
+#: 0.75 px at scale 1 too much is refilled: 3 x 4 MSE x 100 7.8). On the full-size
+#: camera, whose forward flows are already at half resolution, a backward flow at a
+#: quarter (2.0 / 1.5 px) let more occlusions through: pixels off by > 5% (planes /
+#: spheres / layered) 2.55 / 1.50 / 3.26% against 2.55 / 0.84 / 2.53%.
+BACKWARD_SCALE = 1
+#: Forward-backward round-trip tolerance, px at full resolution for a backward flow as
+#: fine as the forward one (see :data:`BACKWARD_SCALE`).
+FB_THRESHOLD = 0.75
 
 
 def depth_flow(n_pixels: int) -> FlowParams:
@@ -185,8 +206,9 @@ def compute_flows(
         DIS parameters (default :func:`depth_flow` of the flow window's size).
     fb_threshold : float
         Pixels whose forward-backward round trip misses by more than this (px)
-        get weight 0 (occlusions, flow failures). The backward flows run
-        :data:`BACKWARD_COARSER` scales coarser than the forward ones.
+        get weight 0 (occlusions, flow failures); doubled for each scale by which
+        the backward flows are coarser than the forward ones
+        (:data:`BACKWARD_SCALE`).
     threads : int
         Flows computed concurrently (OpenCV releases the GIL).
 
@@ -248,16 +270,27 @@ def _flows_and_seen(
     # checks' results are interpolated back to the window (pixel centres aligned).
     f = 2**params.finest_scale
     params = replace(params, finest_scale=0)
-    back_params = replace(params, finest_scale=BACKWARD_COARSER)
+    # The backward flows at BACKWARD_SCALE of the full resolution unless the forward
+    # ones are coarser; the round trip's tolerance grows with their pixel size.
+    back_scale = max(0, BACKWARD_SCALE - int(np.log2(f)))
+    back_params = replace(params, finest_scale=back_scale)
+    fb_low = fb_threshold * 2**back_scale / f  # px at the flow's resolution
 
-    def low(i: int) -> tuple[np.ndarray, np.ndarray]:
-        """View i over the window at the flow's resolution (block means, NaN where a
-        block is not all data), and where it has data."""
-        v = views[(i, *win)]
+    hl, wl = -(-h // f), -(-w // f)  # the window at the flow's resolution
+
+    def low(i: int, rows: slice, cols: slice) -> tuple[np.ndarray, np.ndarray]:
+        """View i over low-resolution ``rows, cols`` of the window, at the flow's
+        resolution (block means, NaN where a block is not all data), and where it has
+        data."""
+        v = views[i, win[0].start + rows.start * f : win[0].start + min(h, rows.stop * f)]
+        v = v[:, win[1].start + cols.start * f : win[1].start + min(w, cols.stop * f)]
         if f > 1:
-            if h % f or w % f:
-                pad = [(0, -h % f), (0, -w % f)] + [(0, 0)] * (v.ndim - 2)
-                v = np.pad(v, pad, constant_values=np.nan)
+            ph, pw = (
+                (rows.stop - rows.start) * f - v.shape[0],
+                (cols.stop - cols.start) * f - v.shape[1],
+            )
+            if ph or pw:
+                v = np.pad(v, [(0, ph), (0, pw)] + [(0, 0)] * (v.ndim - 2), constant_values=np.nan)
             # An integer factor: OpenCV's area resize is the block mean (NaN spreads).
             v = cv2.resize(
                 np.ascontiguousarray(v, np.float32),
@@ -266,45 +299,80 @@ def _flows_and_seen(
             )
         return v, (np.isfinite(v).all(-1) if v.ndim == 3 else np.isfinite(v))
 
-    ref_low, _ = low(reference)
-    grid = _grid(*ref_low.shape[:2])
+    ref_low, _ = low(reference, slice(0, hl), slice(0, wl))
     ref_prepared = prepare(ref_low, sigma=FLOW_SIGMA / f)
     ref_valid = valid[win]
     del ref_low
+    ref_box = _bounding_box(ref_valid)
 
-    def full(a: np.ndarray) -> np.ndarray:
-        """A low-resolution array (flow, or a mask as float) back at the window's size."""
-        if f == 1:
-            return a
-        up = cv2.resize(a, (a.shape[1] * f, a.shape[0] * f), interpolation=cv2.INTER_LINEAR)
-        return up[:h, :w]
+    def full(a: np.ndarray, rows: slice, cols: slice) -> np.ndarray:
+        """A low-resolution array over ``rows, cols`` (flow, or a mask as float) at full
+        resolution, cut to the window."""
+        if f > 1:
+            a = cv2.resize(a, (a.shape[1] * f, a.shape[0] * f), interpolation=cv2.INTER_LINEAR)
+        return a[: h - rows.start * f, : w - cols.start * f]
 
     def one(i: int) -> None:
+        # Only where the reference and this view both have data (grown by the margin:
+        # content moves): far lenslets' views overlap the reference's by half. The
+        # flow's box starts on the low-resolution grid.
+        if margin is None:
+            rows, cols = slice(0, hl), slice(0, wl)
+        else:
+            box = _bounding_box(np.isfinite(views[(i, *win)]).reshape(h, w, -1).all(-1))
+            if box is None or ref_box is None:
+                return
+            y0, y1 = max(box[0], ref_box[0]) - margin, min(box[1], ref_box[1]) + margin
+            x0, x1 = max(box[2], ref_box[2]) - margin, min(box[3], ref_box[3]) + margin
+            y0, y1, x0, x1 = (
+                max(0, y0) // f,
+                -(-min(h, y1) // f),
+                max(0, x0) // f,
+                -(-min(w, x1) // f),
+            )
+            if y1 - y0 < 8 or x1 - x0 < 8:
+                return
+            rows, cols = slice(y0, y1), slice(x0, x1)
         # Each worker prepares its own view (OpenCV and numpy release the GIL).
-        view, view_valid = low(i)
+        view, view_valid = low(i, rows, cols)
         view_prepared = prepare(view, sigma=FLOW_SIGMA / f)
-        flow = dis_flow(ref_prepared, view_prepared, params)
-        target = grid + flow
+        ref_sub = np.ascontiguousarray(ref_prepared[rows, cols])
+        flow = dis_flow(ref_sub, view_prepared, params)
+        target = _grid(*flow.shape[:2]) + flow
         lands = remap_bilinear(view_valid.astype(np.float32), target) > 0.999
         ok = lands
         if backward:
-            b = dis_flow(view_prepared, ref_prepared, back_params)
+            b = dis_flow(view_prepared, ref_sub, back_params)
             back = remap_bilinear(b, target)
-            ok = lands & (np.hypot(*np.moveaxis(flow + back, -1, 0)) < fb_threshold / f)
+            ok = lands & (np.hypot(*np.moveaxis(flow + back, -1, 0)) < fb_low)
+        out = (
+            slice(rows.start * f, min(h, rows.stop * f)),
+            slice(cols.start * f, min(w, cols.stop * f)),
+        )
         if f > 1:
-            flow = full(flow) * np.float32(f)
+            flow = full(flow, rows, cols) * np.float32(f)
             # A pixel passes where all the low-resolution pixels around it passed.
-            ok = full(ok.astype(np.float32)) > 0.999
-            lands = full(lands.astype(np.float32)) > 0.5
-        ok &= ref_valid
-        flows[i] = np.where(ok[..., None], flow, np.nan)
-        weights[i] = ok
-        seen[i] = lands & ref_valid
+            ok = full(ok.astype(np.float32), rows, cols) > 0.999
+            lands = full(lands.astype(np.float32), rows, cols) > 0.5
+        ok &= ref_valid[out]
+        fl = flows[i][out]
+        np.copyto(fl, flow)
+        fl[~ok] = np.nan
+        weights[i][out] = ok
+        seen[i][out] = lands & ref_valid[out]
 
     others = [i for i in range(N) if i != reference]
     with ThreadPoolExecutor(max_workers=max(1, threads)) as ex:
         list(ex.map(one, others))
     return flows, weights, seen, win
+
+
+def _bounding_box(mask: np.ndarray) -> tuple[int, int, int, int] | None:
+    """``(y0, y1, x0, x1)`` (stops exclusive) of a mask's true pixels; None if none."""
+    rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+    if rows.size == 0:
+        return None
+    return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
 
 
 def guide_image(image: np.ndarray) -> np.ndarray:
@@ -567,7 +635,7 @@ def depth_from_views(
     t0 = time.perf_counter()
     # Content moves by o_i s; |s| <= 2 covers a scene from half the board's
     # distance to infinity on the reference camera, and light fields' |s| of a few px.
-    margin = int(np.ceil(2.0 * np.abs(offsets).max())) + 16
+    margin = int(np.ceil(FLOW_MARGIN * np.abs(offsets).max())) + 16
     flows, weights, seen, win = _flows_and_seen(
         views, int(reference), flow, FB_THRESHOLD, threads, margin=margin, backward=backward
     )
