@@ -26,6 +26,7 @@ import argparse
 import statistics
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -42,6 +43,8 @@ CANDIDATES = {
     "lfcam DEPTH_FLOW": DEPTH_FLOW,
     "stride 4, 12 gd": FlowParams(patch_stride=4, gradient_descent_iterations=12),
     "patch 12, stride 4": FlowParams(patch_size=12, patch_stride=4),
+    "16 gd": replace(DEPTH_FLOW, gradient_descent_iterations=16),
+    "20 gd": replace(DEPTH_FLOW, gradient_descent_iterations=20),
     "3 variational": FlowParams(variational_iterations=3),
     "4 variational": FlowParams(variational_iterations=4),
     "5 variational": FlowParams(variational_iterations=5),
