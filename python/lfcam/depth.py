@@ -246,7 +246,9 @@ def _flows_and_seen(
 
     ``margin``: the window is the bounding box of the reference's data grown by this
     many px (content moves at most about that far), not the whole rectified frame,
-    most of which the reference does not see on a lenslet camera; None: the frame.
+    most of which the reference does not see on a lenslet camera, and each view's flow
+    covers only the window's part where both it and the reference have data, grown
+    the same way (:data:`FLOW_MARGIN`); None: the frame, for every view.
     ``backward=False`` skips the backward flows and the consistency check.
     """
     from .warp import remap_bilinear
