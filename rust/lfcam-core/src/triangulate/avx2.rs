@@ -33,15 +33,15 @@
 //! lane extracts, which the compiler turns into vector loads and stores).
 
 use std::arch::x86_64::{
-    __m256, _CMP_EQ_OQ, _CMP_GE_OQ, _CMP_GT_OQ, _CMP_LE_OQ, _CMP_LT_OQ, _mm256_add_epi32,
-    _mm256_add_ps, _mm256_and_ps, _mm256_andnot_ps, _mm256_blendv_ps, _mm256_castpd_ps,
-    _mm256_castps_pd, _mm256_castps_si256, _mm256_castsi256_ps, _mm256_cmp_ps, _mm256_cvtepi32_ps,
-    _mm256_cvttps_epi32, _mm256_div_ps, _mm256_extract_epi32, _mm256_extract_epi64,
-    _mm256_max_epi32, _mm256_max_ps, _mm256_min_epi32, _mm256_min_ps, _mm256_movemask_ps,
-    _mm256_mul_ps, _mm256_or_ps, _mm256_permute4x64_pd, _mm256_permutevar8x32_epi32,
-    _mm256_set1_epi32, _mm256_set1_ps, _mm256_setr_epi8, _mm256_setr_epi32, _mm256_setr_ps,
-    _mm256_setzero_ps, _mm256_shuffle_epi8, _mm256_shuffle_ps, _mm256_slli_epi32, _mm256_sqrt_ps,
-    _mm256_sub_ps, _mm256_xor_ps, _mm256_xor_si256,
+    __m256, _CMP_EQ_OQ, _CMP_GE_OQ, _CMP_GT_OQ, _CMP_LE_OQ, _CMP_LT_OQ, _MM_HINT_T0, _mm_prefetch,
+    _mm256_add_epi32, _mm256_add_ps, _mm256_and_ps, _mm256_andnot_ps, _mm256_blendv_ps,
+    _mm256_castpd_ps, _mm256_castps_pd, _mm256_castps_si256, _mm256_castsi256_ps, _mm256_cmp_ps,
+    _mm256_cvtepi32_ps, _mm256_cvttps_epi32, _mm256_div_ps, _mm256_extract_epi32,
+    _mm256_extract_epi64, _mm256_max_epi32, _mm256_max_ps, _mm256_min_epi32, _mm256_min_ps,
+    _mm256_movemask_ps, _mm256_mul_ps, _mm256_or_ps, _mm256_permute4x64_pd,
+    _mm256_permutevar8x32_epi32, _mm256_set1_epi32, _mm256_set1_ps, _mm256_setr_epi8,
+    _mm256_setr_epi32, _mm256_setr_ps, _mm256_setzero_ps, _mm256_shuffle_epi8, _mm256_shuffle_ps,
+    _mm256_slli_epi32, _mm256_sqrt_ps, _mm256_sub_ps, _mm256_xor_ps, _mm256_xor_si256,
 };
 
 use super::{CONFIDENCE_TAU, LAST, MAD_TO_SIGMA, Outputs, Params, Setup, TOLERANCE, UsedView};
@@ -780,12 +780,38 @@ impl GroupOut<'_> {
     }
 }
 
+/// Asks the CPU to fetch the flows and weights of the chunk at `(y, x0)` into its cache.
+#[inline]
+#[target_feature(enable = "avx2")]
+fn prefetch_chunk<const M: usize>(setup: &Setup<'_>, views: &[UsedView; M], y: usize, x0: usize) {
+    let len = CHUNK.min(setup.width().saturating_sub(x0));
+    let lines = |span: Option<&[f32]>| {
+        for line in span.unwrap_or(&[]).chunks(CACHE_LINE / size_of::<f32>()) {
+            _mm_prefetch::<_MM_HINT_T0>(line.as_ptr().cast::<i8>());
+        }
+    };
+    for view in views {
+        lines(setup.flows.span(view.index, y, x0, len));
+        if let Some(ws) = &setup.weights {
+            lines(ws.span(view.index, y, x0, len));
+        }
+    }
+}
+
+/// How many chunks ahead to prefetch: the solve of a chunk takes microseconds, memory
+/// answers in a fraction of one, but the CPU may be shared. 1, 2 and 4 measured alike
+/// (full-size benchmark, 1 thread: 53 ms without prefetching, 44-45 ms with).
+const PREFETCH_AHEAD: usize = 2;
+
+/// Bytes per cache line (of the x86-64 CPUs with AVX2).
+const CACHE_LINE: usize = 64;
+
 /// The rows of `out` (whole rows from `first_row` on) for `M` used views.
 #[target_feature(enable = "avx2")]
 fn rows_of<const M: usize>(setup: &Setup<'_>, first_row: usize, out: Outputs<'_>) -> Result<()> {
     let internal = || Error::invalid_argument("flows", "internal: view count or row out of range");
     let views: &[UsedView; M] = setup.views.as_slice().try_into().map_err(|_| internal())?;
-    let w = setup.width();
+    let (w, h) = (setup.width(), setup.height());
     let mut groups = [Group::<M>::new(); CHUNK_GROUPS];
     let rows = out
         .parallax
@@ -804,6 +830,14 @@ fn rows_of<const M: usize>(setup: &Setup<'_>, first_row: usize, out: Outputs<'_>
             .zip(used.chunks_mut(CHUNK));
         for (c, ((((par, conf), res), perp), used)) in chunks.enumerate() {
             let (x0, len) = (c * CHUNK, par.len());
+            // A chunk further on is fetched while this one is solved (near the end of
+            // the row, one at the start of the next).
+            let ahead = x0 + PREFETCH_AHEAD * CHUNK;
+            if ahead < w {
+                prefetch_chunk(setup, views, y, ahead);
+            } else if y + 1 < h && ahead - w < w {
+                prefetch_chunk(setup, views, y + 1, (ahead - w) / CHUNK * CHUNK);
+            }
             // Gather, view by view.
             for (i, view) in views.iter().enumerate() {
                 let flow = setup
