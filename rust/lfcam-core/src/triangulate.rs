@@ -626,6 +626,9 @@ struct Scratch {
     inv_c2: Row,
     lo: Row,
     hi: Row,
+    /// The AVX2 path's buffer (empty until that path runs).
+    #[cfg(target_arch = "x86_64")]
+    avx2: avx2::Buffer,
 }
 
 impl Scratch {
@@ -647,6 +650,8 @@ impl Scratch {
             inv_c2: [0.0; LANES],
             lo: [0.0; LANES],
             hi: [0.0; LANES],
+            #[cfg(target_arch = "x86_64")]
+            avx2: avx2::Buffer::default(),
         }
     }
 }
@@ -1063,7 +1068,7 @@ fn rows_task(
     if setup.simd && setup.fixed && avx2::takes(setup) && simd::has_avx2() {
         // SAFETY: `avx2::rows` needs only AVX2, which `has_avx2` found on this CPU.
         #[allow(unsafe_code)]
-        let result = unsafe { avx2::rows(setup, first_row, out) };
+        let result = unsafe { avx2::rows(setup, first_row, out, &mut sc.avx2) };
         return result;
     }
     general_rows_task(setup, sc, first_row, out)
@@ -1483,8 +1488,11 @@ mod tests {
             },
         ];
         let mut checked = 0;
-        for n in 2..=18usize {
-            let (h, w) = (3usize, 2 * 64 + 37);
+        // Rows longer than the AVX2 path's segment (1024 pixels) for a few view counts.
+        let sizes = (2..=18usize)
+            .map(|n| (n, 3usize, 2 * 64 + 37))
+            .chain([4, 12, 17].map(|n| (n, 2, 1024 + 64 + 37)));
+        for (n, h, w) in sizes {
             let reference = n / 3;
             let offsets: Vec<[f64; 2]> = (0..n)
                 .map(|i| {
@@ -1547,12 +1555,12 @@ mod tests {
 
     #[test]
     fn few_view_avx2_path_reports_a_bad_weight_as_the_general_path() {
-        let (n, h, w) = (12usize, 2usize, 150usize);
+        let (n, h, w) = (12usize, 2usize, 1150usize);
         let offsets: Vec<[f64; 2]> = (0..n)
             .map(|i| [10.0 * (i % 4) as f64 - 10.0, 10.0 * (i / 4) as f64 - 10.0])
             .collect();
         let flows = vec![0.5f32; n * h * w * 2];
-        for bad in [(3, 1, 70), (0, 0, 3), (11, 1, 149), (7, 0, 64)] {
+        for bad in [(3, 1, 70), (0, 0, 3), (11, 1, 149), (7, 0, 64), (2, 1, 1100)] {
             let mut weights = vec![1f32; n * h * w];
             let (v, y, x) = bad;
             weights[(v * h + y) * w + x] = -1.0;
