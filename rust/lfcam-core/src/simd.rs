@@ -1,7 +1,7 @@
 //! Runtime CPU dispatch: a kernel's loops compiled a second time for AVX2, and run
 //! when the CPU has it (x86-64 only).
 //!
-//! The kernels vectorise by the compiler (no intrinsics). The wheel targets baseline
+//! The kernels vectorise by the compiler (no intrinsics; one exception below). The wheel targets baseline
 //! x86-64 (SSE2, 4 float lanes); most CPUs in use have AVX2 (8 lanes, three-operand
 //! instructions, blends). A kernel opts in by wrapping its per-task loop body, with
 //! everything it calls `#[inline(always)]`, in [`avx2_or_portable!`]: it expands to a
@@ -13,8 +13,12 @@
 //! The crate's only `unsafe` is this pattern: calling a `#[target_feature]` function is
 //! unsafe because running AVX2 instructions on a CPU without them is undefined
 //! behaviour; [`has_avx2`] checks the CPU first (std's cached CPUID query). It is used
-//! through the macro (triangulate) and written out once in `rectify::Job::segment`,
-//! whose generic parameters the macro does not take.
+//! through the macro (triangulate) and written out in `rectify::Job::segment`, whose
+//! generic parameters the macro does not take, and in `triangulate::rows_task`, which
+//! calls the few-view path `triangulate::avx2`: that one is written with `std::arch`
+//! intrinsics (safe to call in `#[target_feature(enable = "avx2")]` functions), because
+//! it keeps whole arrays of vectors in registers, which the compiler's vectoriser does
+//! not do for arrays of floats.
 
 /// Whether this CPU runs AVX2 code (`false` off x86-64). `LFCAM_SIMD=portable` in the
 /// environment (read once) forces the portable path, for testing and comparison.
