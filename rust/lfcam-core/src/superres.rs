@@ -542,11 +542,12 @@ fn fine_pos(positions: &[f32], k: usize, factor: f32) -> Option<(f32, f32)> {
 }
 
 /// The nearest fine pixel index, `floor(v + 0.5)` (round half up), without a libm
-/// call: `v` is finite here, and positions beyond +-2^30 px are off any grid anyway.
+/// call: `v` is finite here, and positions beyond +-2^30 px are off any grid anyway
+/// (those below come out as -2^30; the clamp keeps the subtraction from overflowing).
 #[inline(always)]
 fn nearest(v: f32) -> i64 {
     const SHIFT: f64 = (1u64 << 30) as f64;
-    ((f64::from(v) + 0.5 + SHIFT) as i64) - (1i64 << 30)
+    ((f64::from(v) + 0.5 + SHIFT).max(0.0) as i64) - (1i64 << 30)
 }
 
 /// `e^x` for `x <= 0` (clamped at -87, about 1.6e-38), within 2e-7 relative of `f32::exp`: Cody-Waite
@@ -567,8 +568,11 @@ fn exp_neg(x: f32) -> f32 {
         + f * (1.0
             + f * (0.5
                 + f * (1.0 / 6.0 + f * (1.0 / 24.0 + f * (1.0 / 120.0 + f * (1.0 / 720.0))))));
-    // n is an integer in [-126, 0]: 2^n is a normal float.
-    let scale = f32::from_bits(((n as i32 + 127) as u32) << 23);
+    // n is an integer in [-126, 0]: 2^n is a normal float, whose exponent field n + 127
+    // is read off the bits of n + 127 + 2^23 (an integer below 2^24 is exact there, in
+    // the low mantissa bits; shifting by 23 drops the rest). No float-to-int
+    // conversion, whose saturating semantics would keep a loop over lanes scalar.
+    let scale = f32::from_bits((n + (127.0 + 8_388_608.0)).to_bits() << 23);
     p * scale
 }
 
@@ -576,16 +580,19 @@ fn exp_neg(x: f32) -> f32 {
 /// pixel's samples are summed, hence the result, does not depend on the thread count.
 const BIN_CHUNK: usize = 1 << 16;
 
-/// One chunk's samples sorted into bands (a counting sort): band `b`'s samples are
-/// `items[starts[b]..starts[b + 1]]`, in increasing order.
-struct ChunkBins {
+/// One chunk's samples sorted into bands (a counting sort), as runs of consecutive
+/// sample indices: band `b`'s samples are the runs `runs[starts[b]..starts[b + 1]]`
+/// (`[k0, k1)` each), in increasing order. The samples of one raw row of a view land in
+/// one or two bands, so a run is usually a whole row's worth of samples: the bands read
+/// positions and values in order, and the bins are small.
+struct ChunkRuns {
     starts: Vec<u32>,
-    items: Vec<u32>,
+    runs: Vec<[u32; 2]>,
 }
 
 struct Bins {
     band_rows: usize,
-    chunks: Vec<ChunkBins>,
+    chunks: Vec<ChunkRuns>,
 }
 
 /// Samples sorted into bands of output rows (a sample whose kernel touches two bands
@@ -600,51 +607,61 @@ fn bin_samples(
     fine_h: usize,
     band_rows: usize,
 ) -> Result<Bins> {
-    if m > u32::MAX as usize {
+    if m >= u32::MAX as usize {
         return Err(Error::invalid_argument(
             "positions",
-            format!("{m} samples: at most {} are supported", u32::MAX),
+            format!("{m} samples: fewer than {} are supported", u32::MAX),
         ));
     }
+    // A kernel is at most 2 r + 1 < band_rows rows tall (checked by the caller): it
+    // touches one band or two neighbours.
+    debug_assert!(2 * radius < band_rows);
     let n_bands = fine_h.div_ceil(band_rows);
-    let r = radius as i64;
-    let span = |k: usize| -> Option<(usize, usize)> {
-        if weights.is_some_and(|wt| !positive(wt[k])) {
-            return None;
-        }
-        let (_, fy) = fine_pos(positions, k, factor)?;
-        let yc = nearest(fy);
-        let lo = (yc - r).max(0);
-        let hi = (yc + r).min(fine_h as i64 - 1);
-        (lo <= hi).then(|| (lo as usize / band_rows, hi as usize / band_rows))
-    };
-    let one = |c: usize| -> ChunkBins {
+    let one = |c: usize| -> ChunkRuns {
         let k0 = c * BIN_CHUNK;
         let k1 = (k0 + BIN_CHUNK).min(m);
-        let mut counts = vec![0u32; n_bands + 1];
-        let spans: Vec<Option<(usize, usize)>> = (k0..k1).map(span).collect();
-        for (b0, b1) in spans.iter().flatten() {
-            for b in *b0..=*b1 {
-                counts[b + 1] += 1;
+        let mut bands = BandOf::new(radius, fine_h, band_rows);
+        // Runs in order of their first sample, `(band, [k0, k1))`; `open[b]`: band b's
+        // last run (u32::MAX: none yet), which sample k extends if it ends at k.
+        let mut seq: Vec<(u32, [u32; 2])> = Vec::new();
+        let mut open = vec![u32::MAX; n_bands];
+        for k in k0..k1 {
+            if weights.is_some_and(|wt| !positive(wt[k])) {
+                continue;
             }
-        }
-        for b in 0..n_bands {
-            counts[b + 1] += counts[b];
-        }
-        let mut items = vec![0u32; counts[n_bands] as usize];
-        let mut fill = counts.clone();
-        for (j, sp) in spans.iter().enumerate() {
-            if let Some((b0, b1)) = *sp {
-                for f in fill.iter_mut().take(b1 + 1).skip(b0) {
-                    items[*f as usize] = (k0 + j) as u32;
-                    *f += 1;
+            let Some((_, fy)) = fine_pos(positions, k, factor) else {
+                continue;
+            };
+            let Some((b0, two)) = bands.of(nearest(fy)) else {
+                continue;
+            };
+            let kk = k as u32; // k < m < u32::MAX
+            for b in b0..=b0 + u32::from(two) {
+                let last = open[b as usize] as usize;
+                match seq.get_mut(last) {
+                    Some((_, run)) if run[1] == kk => run[1] = kk + 1,
+                    _ => {
+                        open[b as usize] = seq.len() as u32;
+                        seq.push((b, [kk, kk + 1]));
+                    }
                 }
             }
         }
-        ChunkBins {
-            starts: counts,
-            items,
+        // Counting sort of the runs by band, stable: each band's runs stay in order.
+        let mut starts = vec![0u32; n_bands + 1];
+        for &(b, _) in &seq {
+            starts[b as usize + 1] += 1;
         }
+        for b in 0..n_bands {
+            starts[b + 1] += starts[b];
+        }
+        let mut runs = vec![[0u32; 2]; seq.len()];
+        let mut next = starts.clone();
+        for &(b, run) in &seq {
+            runs[next[b as usize] as usize] = run;
+            next[b as usize] += 1;
+        }
+        ChunkRuns { starts, runs }
     };
     let n_chunks = m.div_ceil(BIN_CHUNK);
     let chunks = if n_chunks <= 1 {
@@ -655,54 +672,162 @@ fn bin_samples(
     Ok(Bins { band_rows, chunks })
 }
 
-/// Accumulates the samples of one band into its rows.
-#[allow(clippy::too_many_arguments)]
-fn splat_band(
-    band: usize,
-    bins: &Bins,
-    positions: &[f32],
-    values: &[f32],
-    weights: &[f32],
-    channels: usize,
-    fine_w: usize,
-    fine_h: usize,
-    params: &SplatParams,
-    sum: &mut [f32],
-    wsum: &mut [f32],
-) {
-    if channels < 4 {
-        splat_band_lanes::<4>(
-            band, bins, positions, values, weights, channels, fine_w, fine_h, params, sum, wsum,
-        );
-    } else {
-        splat_band_lanes::<8>(
-            band, bins, positions, values, weights, channels, fine_w, fine_h, params, sum, wsum,
-        );
+/// The bands that the kernel of a sample whose nearest fine row is `yc` touches:
+/// `(b, two)`, band `b` and, if `two`, band `b + 1`; `None` if no row of the grid. The
+/// last answer's range of `yc` is kept: samples in scan order mostly stay in it, and
+/// then cost no division.
+struct BandOf {
+    r: i64,
+    last_row: i64,
+    band_rows: i64,
+    /// `yc` in `lo..=hi` gives `answer`.
+    lo: i64,
+    hi: i64,
+    answer: (u32, bool),
+}
+
+impl BandOf {
+    fn new(radius: usize, fine_h: usize, band_rows: usize) -> Self {
+        Self {
+            r: radius as i64,
+            last_row: fine_h as i64 - 1,
+            band_rows: band_rows as i64,
+            lo: 1,
+            hi: 0,
+            answer: (0, false),
+        }
+    }
+
+    #[inline(always)]
+    fn of(&mut self, yc: i64) -> Option<(u32, bool)> {
+        if yc >= self.lo && yc <= self.hi {
+            return Some(self.answer);
+        }
+        let (r, br) = (self.r, self.band_rows);
+        let lo = (yc - r).max(0);
+        let hi = (yc + r).min(self.last_row);
+        if lo > hi {
+            return None;
+        }
+        let (b0, b1) = (lo / br, hi / br);
+        self.answer = (b0 as u32, b1 > b0);
+        // The same bands for yc' with b0 br <= yc' - r, yc' + r < (b1 + 1) br (away
+        // from the grid's edges, where the clamps above act) and, for one band,
+        // yc' + r < (b0 + 1) br; for two, yc' + r >= b1 br and yc' - r < b1 br.
+        let (mut l, mut h) = (b0 * br + r, (b1 + 1) * br - 1 - r);
+        if b1 > b0 {
+            l = l.max(b1 * br - r);
+            h = h.min(b1 * br - 1 + r);
+        }
+        self.lo = l.max(r);
+        self.hi = h.min(self.last_row - r);
+        Some(self.answer)
     }
 }
 
-/// [`splat_band`] with each pixel's sums and weight side by side in `L > channels`
-/// lanes (`[v_0 .. v_{C-1}, 1, 0 ..]` times the tap weight): one vector add per tap.
-/// The band is then split into `sum` and `wsum`. The additions are those of one
-/// accumulator per output value, in the same order: the same result, bit for bit.
-#[allow(clippy::too_many_arguments)]
-#[inline(always)]
-fn splat_band_lanes<const L: usize>(
-    band: usize,
-    bins: &Bins,
-    positions: &[f32],
-    values: &[f32],
-    weights: &[f32],
-    channels: usize,
+/// What one accumulation pass of [`shift_and_add`] reads.
+struct SplatJob<'a> {
+    bins: &'a Bins,
+    positions: &'a [f32],
+    values: &'a [f32],
+    weights: Option<&'a [f32]>,
     fine_w: usize,
     fine_h: usize,
-    params: &SplatParams,
-    sum: &mut [f32],
-    wsum: &mut [f32],
+    params: &'a SplatParams,
+    /// The previous pass's estimate `(fine_h, fine_w, EST_LANES)` (`sum / wsum`, NaN
+    /// where `wsum <= 1e-6`): samples are reweighted against it. `None`: the first pass.
+    est: Option<&'a [f32]>,
+}
+
+/// Where a pass writes one band's rows.
+enum BandOut<'o> {
+    /// The sums and the weights (the last pass).
+    Sums(&'o mut [f32], &'o mut [f32]),
+    /// The estimate `sum / wsum` (NaN where `wsum <= 1e-6`), for the next pass.
+    Estimate(&'o mut [f32]),
+}
+
+impl BandOut<'_> {
+    fn rows(&self, fine_w: usize) -> usize {
+        match self {
+            BandOut::Sums(_, ws) => ws.len() / fine_w,
+            BandOut::Estimate(e) => e.len() / (fine_w * EST_LANES),
+        }
+    }
+}
+
+/// Sample `k`'s weight in a pass: its base weight `w0` (> 0), reweighted by its
+/// residual against the previous pass's estimate (Farsiu et al. 2003's robust
+/// shift-and-add): `w0 min(1, huber / e)`, 0 above `reject`; `w0` where there is no
+/// estimate yet.
+#[inline(always)]
+fn robust_weight<const C: usize>(
+    job: &SplatJob<'_>,
+    est: &[f32],
+    v: &[f32],
+    fx: f32,
+    fy: f32,
+    w0: f32,
+) -> f32 {
+    let p = job.params;
+    let mut buf = [0f32; EST_LANES];
+    if !estimate_at(est, job.fine_h, job.fine_w, fx, fy, &mut buf) {
+        return w0; // no estimate there yet: keep the sample
+    }
+    // Summed as `Iterator::sum` does (from -0, in order).
+    let mut e = -0.0f32;
+    for (a, b) in v.iter().zip(&buf[..C]) {
+        e += (a - b).abs();
+    }
+    let e = e / C as f32;
+    // Selects rather than branches: whether a sample is an outlier is as good as
+    // random, and a mispredicted branch costs more than the division.
+    let keep = e <= p.reject; // false for NaN
+    let damped = w0 * p.huber / e;
+    let w = if e > p.huber { damped } else { w0 };
+    if keep { w } else { 0.0 }
+}
+
+/// One band of one pass: its samples accumulated in `acc` (each pixel's sums and
+/// weight side by side in `L > channels` lanes, `[v_0 .. v_{C-1}, 1, 0 ..]` times the
+/// tap weight: one vector add per tap), then written to `out`. The additions are those
+/// of one accumulator per output value, in increasing sample order: the result does not
+/// depend on the bands.
+struct SplatBand<'a, 'o, const C: usize, const L: usize> {
+    job: &'a SplatJob<'a>,
+    band: usize,
+    acc: &'a mut Vec<[f32; L]>,
+    out: BandOut<'o>,
+}
+
+impl<const C: usize, const L: usize> simd::Avx2Kernel for SplatBand<'_, '_, C, L> {
+    type Output = ();
+    #[inline(always)]
+    fn run(self) {
+        splat_band::<C, L>(self.job, self.band, self.acc, self.out);
+    }
+}
+
+/// Pixels of margin on each side of a row of a band's accumulator: taps just outside
+/// the grid land there (and are dropped), so the 3 x 3 kernel needs no test per tap.
+const ACC_PAD: usize = 2;
+
+#[inline(always)]
+fn splat_band<const C: usize, const L: usize>(
+    job: &SplatJob<'_>,
+    band: usize,
+    acc: &mut Vec<[f32; L]>,
+    out: BandOut<'_>,
 ) {
-    let row0 = band * bins.band_rows;
-    let nrows = wsum.len() / fine_w;
-    let mut acc = vec![[0f32; L]; nrows * fine_w];
+    let (fine_w, fine_h) = (job.fine_w, job.fine_h);
+    let params = job.params;
+    let row0 = band * job.bins.band_rows;
+    let nrows = out.rows(fine_w);
+    // Rows of `stride` (even) pixels, pixel x at `x + ACC_PAD`.
+    let stride = (fine_w + 2 * ACC_PAD).next_multiple_of(2);
+    acc.clear();
+    acc.resize(nrows * stride, [0f32; L]);
+    let acc = &mut acc[..];
     let r = if params.sigma > 0.0 {
         params.radius as i64
     } else {
@@ -713,90 +838,350 @@ fn splat_band_lanes<const L: usize>(
     } else {
         0.0
     };
-    let band_items = bins.chunks.iter().flat_map(|c| {
-        let (a, b) = (c.starts[band] as usize, c.starts[band + 1] as usize);
-        &c.items[a..b]
-    });
-    for &k in band_items {
-        let k = k as usize;
-        let wk = weights[k];
-        if !positive(wk) {
-            continue;
-        }
-        let Some((fx, fy)) = fine_pos(positions, k, params.factor) else {
-            continue;
-        };
-        let xc = nearest(fx);
-        let yc = nearest(fy);
-        let v = &values[k * channels..(k + 1) * channels];
-        if v.iter().any(|c| !c.is_finite()) {
-            continue;
-        }
-        let mut vv = [0f32; L];
-        vv[..channels].copy_from_slice(v);
-        vv[channels] = 1.0;
-        // The Gaussian is separable: (2r + 1) exponentials per axis, not per tap.
-        let mut gx = [1f32; 2 * MAX_RADIUS + 1];
-        let mut gys = [1f32; 2 * MAX_RADIUS + 1];
-        let (dx0, dy0) = ((xc - r) as f32 - fx, (yc - r) as f32 - fy);
-        if r == 1 {
-            // The usual 3 x 3 kernel: both axes' six exponentials in one vector.
-            let mut e = [0f32; 8];
-            for t in 0..3 {
-                let (dx, dy) = (dx0 + t as f32, dy0 + t as f32);
-                e[t] = -dx * dx * inv2s2;
-                e[4 + t] = -dy * dy * inv2s2;
-            }
-            for v in &mut e {
-                *v = exp_neg(*v);
-            }
-            gx[..3].copy_from_slice(&e[..3]);
-            gys[..3].copy_from_slice(&e[4..7]);
-        } else if r > 0 {
-            for (t, (g, gy)) in gx
-                .iter_mut()
-                .zip(gys.iter_mut())
-                .enumerate()
-                .take(2 * r as usize + 1)
-            {
-                let (dx, dy) = (dx0 + t as f32, dy0 + t as f32);
-                *g = exp_neg(-dx * dx * inv2s2);
-                *gy = exp_neg(-dy * dy * inv2s2);
-            }
-        }
-        for (ty, yy) in ((yc - r)..=(yc + r)).enumerate() {
-            if yy < row0 as i64 || yy >= (row0 + nrows) as i64 || yy >= fine_h as i64 {
+    let (row_lo, row_hi) = (row0 as i64, (row0 + nrows).min(fine_h) as i64);
+    for chunk in &job.bins.chunks {
+        let (a, b) = (chunk.starts[band] as usize, chunk.starts[band + 1] as usize);
+        for &[k0, k1] in &chunk.runs[a..b] {
+            if r == 1 {
+                // The usual 3 x 3 kernel, in blocks of consecutive samples.
+                let mut k = k0 as usize;
+                while k < k1 as usize {
+                    let n = (k1 as usize - k).min(SPLAT_BLOCK);
+                    splat3_block::<C, L>(job, k, n, acc, stride, row_lo, row_hi, inv2s2);
+                    k += n;
+                }
                 continue;
             }
-            let wy = wk * gys[ty];
-            let ly = (yy as usize - row0) * fine_w;
-            for (t, xx) in ((xc - r)..=(xc + r)).enumerate() {
-                if xx < 0 || xx >= fine_w as i64 {
+            for k in k0 as usize..k1 as usize {
+                let w0 = job.weights.map_or(1.0, |wt| wt[k]);
+                if !positive(w0) {
                     continue;
                 }
-                let wt = wy * gx[t];
-                let a = &mut acc[ly + xx as usize];
-                for (o, &b) in a.iter_mut().zip(&vv) {
-                    *o += wt * b;
+                let Some((fx, fy)) = fine_pos(job.positions, k, params.factor) else {
+                    continue;
+                };
+                let Some(v) = job.values.get(k * C..(k + 1) * C) else {
+                    continue;
+                };
+                let wk = match job.est {
+                    Some(est) => robust_weight::<C>(job, est, v, fx, fy, w0),
+                    None => w0,
+                };
+                if !positive(wk) || v.iter().any(|c| !c.is_finite()) {
+                    continue;
+                }
+                let mut vv = [0f32; L];
+                vv[..C].copy_from_slice(v);
+                vv[C] = 1.0;
+                let xc = nearest(fx);
+                let yc = nearest(fy);
+                let (dx0, dy0) = ((xc - r) as f32 - fx, (yc - r) as f32 - fy);
+                let mut gx = [1f32; 2 * MAX_RADIUS + 1];
+                let mut gys = [1f32; 2 * MAX_RADIUS + 1];
+                if r > 0 {
+                    for (t, (g, gy)) in gx
+                        .iter_mut()
+                        .zip(gys.iter_mut())
+                        .enumerate()
+                        .take(2 * r as usize + 1)
+                    {
+                        let (dx, dy) = (dx0 + t as f32, dy0 + t as f32);
+                        *g = exp_neg(-dx * dx * inv2s2);
+                        *gy = exp_neg(-dy * dy * inv2s2);
+                    }
+                }
+                for (ty, yy) in ((yc - r)..=(yc + r)).enumerate() {
+                    if yy < row_lo || yy >= row_hi {
+                        continue;
+                    }
+                    let wy = wk * gys[ty];
+                    let ly = (yy - row_lo) as usize * stride + ACC_PAD;
+                    for (t, xx) in ((xc - r)..=(xc + r)).enumerate() {
+                        if xx < 0 || xx >= fine_w as i64 {
+                            continue;
+                        }
+                        let wt = wy * gx[t];
+                        for (o, &b) in acc[ly + xx as usize].iter_mut().zip(&vv) {
+                            *o += wt * b;
+                        }
+                    }
                 }
             }
         }
     }
-    for ((a, ws), s) in acc
-        .iter()
-        .zip(wsum.iter_mut())
-        .zip(sum.chunks_exact_mut(channels))
-    {
-        *ws = a[channels];
-        s.copy_from_slice(&a[..channels]);
+    let rows = acc
+        .chunks_exact(stride)
+        .map(|row| &row[ACC_PAD..ACC_PAD + fine_w]);
+    match out {
+        BandOut::Sums(sum, wsum) => {
+            for ((row, ws), s) in rows
+                .zip(wsum.chunks_exact_mut(fine_w))
+                .zip(sum.chunks_exact_mut(fine_w * C))
+            {
+                for ((a, ws), s) in row.iter().zip(ws).zip(s.chunks_exact_mut(C)) {
+                    *ws = a[C];
+                    s.copy_from_slice(&a[..C]);
+                }
+            }
+        }
+        BandOut::Estimate(est) => {
+            for (row, e) in rows.zip(est.chunks_exact_mut(fine_w * EST_LANES)) {
+                for (a, e) in row.iter().zip(e.chunks_exact_mut(EST_LANES)) {
+                    let ws = a[C];
+                    for (o, &v) in e.iter_mut().zip(&a[..C]) {
+                        *o = if ws > 1e-6 { v / ws } else { f32::NAN };
+                    }
+                }
+            }
+        }
     }
 }
 
+/// Samples per block of [`splat3_block`].
+const SPLAT_BLOCK: usize = 64;
+
+/// [`nearest`] as a float: `floor(v + 0.5)` computed exactly as `nearest` does
+/// (`(v + 0.5) + 2^30`, truncated, minus `2^30`), with float operations only, which
+/// vectorise (a saturating float-to-int conversion per lane does not).
+#[inline(always)]
+fn nearest_f64(v: f32) -> f64 {
+    const SHIFT: f64 = (1u64 << 30) as f64;
+    // Truncating a non-negative number floors it; below -2^30 (far off any grid) the
+    // two differ, which changes nothing.
+    ((f64::from(v) + 0.5 + SHIFT).floor()) - SHIFT
+}
+
+/// Samples `k0..k0 + n` (`n <= SPLAT_BLOCK`, one run of the band) with the 3 x 3
+/// kernel: first, for the whole block, their fine positions, nearest pixels and
+/// Gaussian taps (straight-line arithmetic over arrays, which vectorises), then each
+/// sample's taps added by [`splat3`]. The arithmetic per sample is that of the general
+/// kernel in [`splat_band`].
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn splat3_block<const C: usize, const L: usize>(
+    job: &SplatJob<'_>,
+    k0: usize,
+    n: usize,
+    acc: &mut [[f32; L]],
+    stride: usize,
+    row_lo: i64,
+    row_hi: i64,
+    inv2s2: f32,
+) {
+    const B: usize = SPLAT_BLOCK;
+    // 1, the weight lane's value, opaque to the optimiser: knowing that lane's products
+    // are `wt * 1`, it would split each pixel's vector product into scalar ones and
+    // reassemble the vector lane by lane.
+    let one = std::hint::black_box(1.0f32);
+    let factor = job.params.factor;
+    let Some(pos) = job.positions.get(2 * k0..2 * (k0 + n)) else {
+        return;
+    };
+    let mut fx = [0f32; B];
+    let mut fy = [0f32; B];
+    for (i, p) in pos.chunks_exact(2).enumerate() {
+        fx[i] = (p[0] + 0.5) * factor - 0.5;
+        fy[i] = (p[1] + 0.5) * factor - 0.5;
+    }
+    let mut cx = [0f64; B];
+    let mut cy = [0f64; B];
+    // Taps along x (t = 0..3) and y (t = 4..7), tap by tap over the block's samples
+    // (rounded up to a multiple of 8 for whole vectors; the rest is not read).
+    let nv = n.next_multiple_of(8).min(B);
+    let mut g = [[0f32; B]; 8];
+    for i in 0..nv {
+        cx[i] = nearest_f64(fx[i]);
+        cy[i] = nearest_f64(fy[i]);
+        let dx0 = (cx[i] - 1.0) as f32 - fx[i];
+        let dy0 = (cy[i] - 1.0) as f32 - fy[i];
+        for t in 0..3 {
+            let (dx, dy) = (dx0 + t as f32, dy0 + t as f32);
+            g[t][i] = -dx * dx * inv2s2;
+            g[4 + t][i] = -dy * dy * inv2s2;
+        }
+    }
+    for (t, row) in g.iter_mut().enumerate() {
+        if t % 4 == 3 {
+            continue; // unused
+        }
+        for v in &mut row[..nv] {
+            *v = exp_neg(*v);
+        }
+    }
+    for i in 0..n {
+        let k = k0 + i;
+        let w0 = job.weights.map_or(1.0, |wt| wt[k]);
+        if !(positive(w0) && fx[i].is_finite() && fy[i].is_finite()) {
+            continue;
+        }
+        let Some(v) = job.values.get(k * C..(k + 1) * C) else {
+            continue;
+        };
+        let wk = match job.est {
+            Some(est) => robust_weight::<C>(job, est, v, fx[i], fy[i], w0),
+            None => w0,
+        };
+        if !positive(wk) || v.iter().any(|c| !c.is_finite()) {
+            continue;
+        }
+        let mut vv = [0f32; L];
+        vv[..C].copy_from_slice(v);
+        vv[C] = one;
+        // Integers (exact in f64); beyond +-2^40, far off any grid, clamped so that
+        // the index arithmetic cannot overflow.
+        const FAR: f64 = (1u64 << 40) as f64;
+        let (xc, yc) = (cx[i].clamp(-FAR, FAR) as i64, cy[i].clamp(-FAR, FAR) as i64);
+        let e = [
+            g[0][i], g[1][i], g[2][i], 0.0, g[4][i], g[5][i], g[6][i], 0.0,
+        ];
+        splat3::<L>(acc, stride, row_lo, row_hi, xc, yc, wk, &e, &vv);
+    }
+}
+
+/// One sample's 3 x 3 taps (`e[0..3]` along x, `e[4..7]` along y, times `wk`) added to
+/// the rows of `acc` (rows of `stride` pixels, pixel x at `x + ACC_PAD`) that lie in
+/// `row_lo..row_hi`. A row's three taps are added as two pairs of pixels aligned on even
+/// pixel indices (the fourth pixel with weight 0, which adds nothing: a sum that starts
+/// at +0 never becomes -0): consecutive samples, about two fine pixels apart, then
+/// read exactly the pair the previous one wrote, which the CPU forwards from its store.
+/// Each value gets `(wk g_y) g_x` times the sample's lane, as in the general kernel.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn splat3<const L: usize>(
+    acc: &mut [[f32; L]],
+    stride: usize,
+    row_lo: i64,
+    row_hi: i64,
+    xc: i64,
+    yc: i64,
+    wk: f32,
+    e: &[f32; 8],
+    vv: &[f32; L],
+) {
+    // Padded index of the first tap, x = xc - 1.
+    let xp = xc - 1 + ACC_PAD as i64;
+    // (An infinite weight would turn the fourth pixel's zero weight into NaN.)
+    if L == 4 && xp >= 0 && xp + 3 < stride as i64 && wk.is_finite() {
+        let odd = (xp & 1) as usize;
+        let base = xp as usize - odd;
+        // [e0, e1, e2, 0] or [0, e0, e1, e2], by index rather than by a branch (the
+        // parity of jittered samples is unpredictable).
+        let ext = [0.0, e[0], e[1], e[2], 0.0];
+        let g4: [f32; 4] = std::array::from_fn(|t| ext[t + 1 - odd]);
+        let g16: [f32; 16] = std::array::from_fn(|i| g4[i / 4]);
+        let v16: [f32; 16] = std::array::from_fn(|i| vv[i % L]);
+        let flat = acc.as_flattened_mut();
+        for ty in 0..3 {
+            let yy = yc - 1 + ty as i64;
+            if yy < row_lo || yy >= row_hi {
+                continue;
+            }
+            let wy = wk * e[4 + ty];
+            let at = ((yy - row_lo) as usize * stride + base) * L;
+            let Some(dst) = flat.get_mut(at..at + 16) else {
+                continue;
+            };
+            for ((o, &g), &b) in dst.iter_mut().zip(&g16).zip(&v16) {
+                *o += (wy * g) * b;
+            }
+        }
+        return;
+    }
+    for ty in 0..3 {
+        let yy = yc - 1 + ty as i64;
+        if yy < row_lo || yy >= row_hi {
+            continue;
+        }
+        let wy = wk * e[4 + ty];
+        let ly = (yy - row_lo) as usize * stride;
+        for (xx, &gx) in (xp..xp + 3).zip(&e[..3]) {
+            if xx < 0 || xx >= stride as i64 {
+                continue;
+            }
+            let wt = wy * gx;
+            for (o, &b) in acc[ly + xx as usize].iter_mut().zip(vv) {
+                *o += wt * b;
+            }
+        }
+    }
+}
+
+/// One accumulation pass over all bands: into `sum` and `wsum` (`Some`), or the
+/// estimate for the next pass into `sum` (`wsum` `None`).
+fn splat_pass<const C: usize, const L: usize>(
+    job: &SplatJob<'_>,
+    sum: &mut [f32],
+    wsum: Option<&mut [f32]>,
+    threads: usize,
+) -> Result<()> {
+    let (fine_w, c) = (job.fine_w, C);
+    let band_rows = job.bins.band_rows;
+    let go = |acc: &mut Vec<[f32; L]>, band: usize, out: BandOut<'_>| {
+        simd::run_avx2_or_portable(
+            true,
+            SplatBand::<C, L> {
+                job,
+                band,
+                acc,
+                out,
+            },
+        );
+    };
+    let chunk = band_rows * fine_w * c;
+    let serial = parallel::run_serially(job.fine_h * fine_w * (c + 1) * 4, threads);
+    match wsum {
+        Some(wsum) if serial => {
+            let mut acc = Vec::new();
+            for (b, (s, ws)) in sum
+                .chunks_mut(chunk)
+                .zip(wsum.chunks_mut(band_rows * fine_w))
+                .enumerate()
+            {
+                go(&mut acc, b, BandOut::Sums(s, ws));
+            }
+            Ok(())
+        }
+        Some(wsum) => parallel::install(|| {
+            sum.par_chunks_mut(chunk)
+                .zip(wsum.par_chunks_mut(band_rows * fine_w))
+                .enumerate()
+                .for_each_init(Vec::new, |acc, (b, (s, ws))| {
+                    go(acc, b, BandOut::Sums(s, ws));
+                });
+        }),
+        None if serial => {
+            let mut acc = Vec::new();
+            for (b, e) in sum.chunks_mut(band_rows * fine_w * EST_LANES).enumerate() {
+                go(&mut acc, b, BandOut::Estimate(e));
+            }
+            Ok(())
+        }
+        None => parallel::install(|| {
+            sum.par_chunks_mut(band_rows * fine_w * EST_LANES)
+                .enumerate()
+                .for_each_init(Vec::new, |acc, (b, e)| go(acc, b, BandOut::Estimate(e)));
+        }),
+    }
+}
+
+/// Floats per pixel of an estimate image: `C <= 4` values, then zeros.
+const EST_LANES: usize = 4;
+
 /// The fused estimate at fine `(x, y)`: bilinear (clamped to the grid) in `est`
-/// (`sum / wsum` per pixel, NaN where `wsum <= 1e-6`) over the corners that have an
-/// estimate, channel by channel into `out`; false if none.
-#[inline]
-fn estimate_at(est: &[f32], h: usize, w: usize, c: usize, x: f32, y: f32, out: &mut [f32]) -> bool {
+/// (`(h, w, EST_LANES)`: `sum / wsum` per pixel, NaN where `wsum <= 1e-6`) over the
+/// corners that have an estimate, channel by channel into `out`; false if none.
+///
+/// The corners without an estimate add exact zeros rather than being skipped, which is
+/// the same (a sum that starts at +0 never becomes -0) without a branch per corner.
+#[inline(always)]
+fn estimate_at(
+    est: &[f32],
+    h: usize,
+    w: usize,
+    x: f32,
+    y: f32,
+    out: &mut [f32; EST_LANES],
+) -> bool {
     let xc = x.clamp(0.0, (w - 1) as f32);
     let yc = y.clamp(0.0, (h - 1) as f32);
     let x0 = (xc as usize).min(w - 1);
@@ -805,24 +1190,25 @@ fn estimate_at(est: &[f32], h: usize, w: usize, c: usize, x: f32, y: f32, out: &
     let y1 = (y0 + 1).min(h - 1);
     let (tx, ty) = (xc - x0 as f32, yc - y0 as f32);
     let mut total = 0.0f32;
-    out.iter_mut().take(c).for_each(|o| *o = 0.0);
+    *out = [0.0; EST_LANES];
     for (yy, wy) in [(y0, 1.0 - ty), (y1, ty)] {
         for (xx, wx) in [(x0, 1.0 - tx), (x1, tx)] {
-            let p = yy * w + xx;
-            let e = &est[p * c..(p + 1) * c];
+            let p = (yy * w + xx) * EST_LANES;
+            let Some(e) = est.get(p..p + EST_LANES) else {
+                continue;
+            };
             let b = wx * wy;
-            if !e[0].is_nan() && b > 0.0 {
-                total += b;
-                for (o, &v) in out.iter_mut().zip(e) {
-                    *o += b * v;
-                }
+            let used = !e[0].is_nan() && b > 0.0;
+            total += if used { b } else { 0.0 };
+            for (o, &v) in out.iter_mut().zip(e) {
+                *o += if used { b * v } else { 0.0 };
             }
         }
     }
     if total < 0.25 {
         return false;
     }
-    out.iter_mut().take(c).for_each(|o| *o /= total);
+    out.iter_mut().for_each(|o| *o /= total);
     true
 }
 
@@ -931,94 +1317,47 @@ pub fn shift_and_add(
         fine_h,
         band_rows,
     )?;
-    let mut wk: Vec<f32> = match weights {
-        Some(wt) => wt.to_vec(),
-        None => vec![1.0; m],
-    };
-    let row_len = fine_w * channels;
-    let accumulate = |wk: &[f32], sum: &mut [f32], wsum: &mut [f32]| -> Result<()> {
-        let go = |(b, (s, ws)): (usize, (&mut [f32], &mut [f32]))| {
-            splat_band(
-                b, &bins, positions, values, wk, channels, fine_w, fine_h, params, s, ws,
-            );
-        };
-        let chunks = sum
-            .chunks_mut(band_rows * row_len)
-            .zip(wsum.chunks_mut(band_rows * fine_w));
-        if parallel::run_serially(fine_h * fine_w * (channels + 1) * 4, threads) {
-            chunks.enumerate().for_each(go);
-            Ok(())
+    // Pass j reads the estimate of pass j - 1 (none for the first) and writes the one
+    // pass j + 1 reads; the last pass writes the sums. Two estimates take turns.
+    let scratch = |passes: usize| {
+        if params.iterations >= passes {
+            vec![0f32; fine_h * fine_w * EST_LANES]
         } else {
-            parallel::install(|| {
-                sum.par_chunks_mut(band_rows * row_len)
-                    .zip(wsum.par_chunks_mut(band_rows * fine_w))
-                    .enumerate()
-                    .for_each(go);
-            })
+            Vec::new()
         }
     };
-    accumulate(&wk, sum, wsum)?;
-    let mut est = if params.iterations > 0 {
-        vec![0f32; sum.len()]
-    } else {
-        Vec::new()
-    };
-    for _ in 0..params.iterations {
-        // The estimate sum / wsum, once per pixel (sum and wsum are rebuilt by the
-        // next accumulation).
-        {
-            let (s_ro, w_ro): (&[f32], &[f32]) = (sum, wsum);
-            parallel::for_each_row_chunk(&mut est, row_len, |first, rows| {
-                for (j, e) in rows.chunks_exact_mut(channels).enumerate() {
-                    let p = first * fine_w + j;
-                    let ws = w_ro[p];
-                    let sp = &s_ro[p * channels..(p + 1) * channels];
-                    for (o, &v) in e.iter_mut().zip(sp) {
-                        *o = if ws > 1e-6 { v / ws } else { f32::NAN };
-                    }
-                }
-                Ok(())
-            })?;
+    let (mut est_a, mut est_b) = (scratch(1), scratch(2));
+    for pass in 0..=params.iterations {
+        if pass >= 2 {
+            std::mem::swap(&mut est_a, &mut est_b);
         }
-        let est: &[f32] = &est;
-        let base = weights;
-        let reweight = |first: usize, chunk: &mut [f32]| -> Result<()> {
-            let mut buf = [0f32; MAX_CHANNELS];
-            for (j, w) in chunk.iter_mut().enumerate() {
-                let k = first + j;
-                let w0 = base.map_or(1.0, |b| b[k]);
-                if !positive(w0) {
-                    *w = 0.0;
-                    continue;
-                }
-                let Some((fx, fy)) = fine_pos(positions, k, params.factor) else {
-                    *w = 0.0;
-                    continue;
-                };
-                if !estimate_at(est, fine_h, fine_w, channels, fx, fy, &mut buf) {
-                    *w = w0; // no estimate there yet: keep the sample
-                    continue;
-                }
-                let v = &values[k * channels..(k + 1) * channels];
-                let e = v
-                    .iter()
-                    .zip(&buf[..channels])
-                    .map(|(a, b)| (a - b).abs())
-                    .sum::<f32>()
-                    / channels as f32;
-                let keep = e <= params.reject; // false for NaN
-                *w = if !keep {
-                    0.0
-                } else if e > params.huber {
-                    w0 * params.huber / e
-                } else {
-                    w0
-                };
-            }
-            Ok(())
+        // `est_a` holds the previous pass's estimate; `est_b` is written.
+        let (read, write): (Option<&[f32]>, &mut [f32]) = match pass {
+            0 => (None, &mut est_a),
+            _ => (Some(&est_a), &mut est_b),
         };
-        parallel::for_each_row_chunk(&mut wk, 1, reweight)?;
-        accumulate(&wk, sum, wsum)?;
+        let job = SplatJob {
+            bins: &bins,
+            positions,
+            values,
+            weights,
+            fine_w,
+            fine_h,
+            params,
+            est: read,
+        };
+        let last = pass == params.iterations;
+        let (target, ws): (&mut [f32], Option<&mut [f32]>) = if last {
+            (&mut *sum, Some(&mut *wsum))
+        } else {
+            (write, None)
+        };
+        match channels {
+            1 => splat_pass::<1, 4>(&job, target, ws, threads)?,
+            2 => splat_pass::<2, 4>(&job, target, ws, threads)?,
+            3 => splat_pass::<3, 4>(&job, target, ws, threads)?,
+            _ => splat_pass::<4, 8>(&job, target, ws, threads)?,
+        }
     }
     Ok(())
 }
@@ -1605,6 +1944,187 @@ mod tests {
             }
         }
         assert!(n > 80, "{n}");
+    }
+
+    /// Shift-and-add straight from its definition, one sample at a time in increasing
+    /// order (robust passes as documented): the kernel must match it bit for bit.
+    fn splat_naive(
+        pos: &[f32],
+        val: &[f32],
+        weights: Option<&[f32]>,
+        c: usize,
+        fh: usize,
+        fw: usize,
+        p: &SplatParams,
+    ) -> (Vec<f32>, Vec<f32>) {
+        let m = pos.len() / 2;
+        let r = if p.sigma > 0.0 { p.radius as i64 } else { 0 };
+        let inv2s2 = if p.sigma > 0.0 {
+            1.0 / (2.0 * p.sigma * p.sigma)
+        } else {
+            0.0
+        };
+        let accumulate = |wk: &[f32]| {
+            let mut sum = vec![0f32; fh * fw * c];
+            let mut ws = vec![0f32; fh * fw];
+            for k in 0..m {
+                let Some((fx, fy)) = fine_pos(pos, k, p.factor) else {
+                    continue;
+                };
+                let v = &val[k * c..(k + 1) * c];
+                if !positive(wk[k]) || v.iter().any(|x| !x.is_finite()) {
+                    continue;
+                }
+                let (xc, yc) = (nearest(fx), nearest(fy));
+                let (dx0, dy0) = ((xc - r) as f32 - fx, (yc - r) as f32 - fy);
+                for ty in 0..=2 * r {
+                    let yy = yc - r + ty;
+                    let dy = dy0 + ty as f32;
+                    let gy = if r > 0 {
+                        exp_neg(-dy * dy * inv2s2)
+                    } else {
+                        1.0
+                    };
+                    let wy = wk[k] * gy;
+                    for tx in 0..=2 * r {
+                        let xx = xc - r + tx;
+                        if yy < 0 || yy >= fh as i64 || xx < 0 || xx >= fw as i64 {
+                            continue;
+                        }
+                        let dx = dx0 + tx as f32;
+                        let gx = if r > 0 {
+                            exp_neg(-dx * dx * inv2s2)
+                        } else {
+                            1.0
+                        };
+                        let wt = wy * gx;
+                        let px = yy as usize * fw + xx as usize;
+                        for ch in 0..c {
+                            sum[px * c + ch] += wt * v[ch];
+                        }
+                        ws[px] += wt;
+                    }
+                }
+            }
+            (sum, ws)
+        };
+        let base: Vec<f32> = (0..m).map(|k| weights.map_or(1.0, |w| w[k])).collect();
+        let (mut sum, mut ws) = accumulate(&base);
+        for _ in 0..p.iterations {
+            let mut est = vec![0f32; fh * fw * EST_LANES];
+            for (px, e) in est.chunks_exact_mut(EST_LANES).enumerate() {
+                for ch in 0..c {
+                    e[ch] = if ws[px] > 1e-6 {
+                        sum[px * c + ch] / ws[px]
+                    } else {
+                        f32::NAN
+                    };
+                }
+            }
+            let wk: Vec<f32> = (0..m)
+                .map(|k| {
+                    let w0 = base[k];
+                    let Some((fx, fy)) = fine_pos(pos, k, p.factor) else {
+                        return 0.0;
+                    };
+                    if !positive(w0) {
+                        return 0.0;
+                    }
+                    let mut buf = [0f32; EST_LANES];
+                    if !estimate_at(&est, fh, fw, fx, fy, &mut buf) {
+                        return w0;
+                    }
+                    let v = &val[k * c..(k + 1) * c];
+                    let e = v.iter().zip(&buf).map(|(a, b)| (a - b).abs()).sum::<f32>() / c as f32;
+                    let keep = e <= p.reject; // false for NaN
+                    if !keep {
+                        0.0
+                    } else if e > p.huber {
+                        w0 * p.huber / e
+                    } else {
+                        w0
+                    }
+                })
+                .collect();
+            (sum, ws) = accumulate(&wk);
+        }
+        (sum, ws)
+    }
+
+    #[test]
+    fn shift_and_add_matches_the_definition_bit_for_bit() {
+        let mut seed = 99u64;
+        let mut rnd = move || {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((seed >> 40) as f32) / (1u64 << 24) as f32
+        };
+        let (h, w) = (23usize, 31usize);
+        for &(c, factor, sigma, radius, iterations, scan) in &[
+            (3usize, 2.0f32, 0.4f32, 1usize, 1usize, true),
+            (3, 2.0, 0.4, 1, 0, false),
+            (1, 3.0, 0.0, 0, 1, true),
+            (2, 1.0, 0.35, 1, 2, false),
+            (4, 2.0, 0.5, 1, 1, true),
+            (3, 2.0, 0.8, 2, 1, true),
+            (4, 1.5, 0.6, 3, 0, false),
+        ] {
+            let (fh, fw) = (
+                (h as f32 * factor).round() as usize,
+                (w as f32 * factor).round() as usize,
+            );
+            let m = 4000;
+            let mut pos = Vec::with_capacity(2 * m);
+            for k in 0..m {
+                if scan {
+                    // Rows of a slightly rotated grid with jitter, as placed raw samples.
+                    let (i, j) = ((k % 70) as f32, (k / 70) as f32);
+                    pos.push(-2.0 + 0.5 * i + 0.01 * j + 0.2 * rnd());
+                    pos.push(-1.0 + 0.45 * j - 0.01 * i + 0.2 * rnd());
+                } else {
+                    pos.push(-2.0 + (w + 3) as f32 * rnd());
+                    pos.push(-2.0 + (h + 3) as f32 * rnd());
+                }
+            }
+            // Unusable and extreme samples.
+            pos[10] = f32::NAN;
+            pos[21] = f32::INFINITY;
+            pos[30] = 1e30;
+            pos[41] = -1e30;
+            pos[50] = -3e9;
+            pos[61] = 5e9;
+            let mut val: Vec<f32> = (0..m * c).map(|_| rnd()).collect();
+            val[7 * c] = f32::NAN;
+            // Outliers for the robust passes.
+            for k in (0..m).step_by(9) {
+                val[k * c] += 0.5;
+            }
+            let wts: Vec<f32> = (0..m)
+                .map(|k| if k % 17 == 0 { 0.0 } else { 0.5 + rnd() })
+                .collect();
+            let p = SplatParams {
+                factor,
+                sigma,
+                radius,
+                iterations,
+                huber: 0.05,
+                reject: 0.3,
+            };
+            for weights in [None, Some(&wts[..])] {
+                let (ws_ref, wsum_ref) = splat_naive(&pos, &val, weights, c, fh, fw, &p);
+                let mut sum = vec![0f32; fh * fw * c];
+                let mut ws = vec![0f32; fh * fw];
+                shift_and_add(&pos, &val, weights, c, fh, fw, &p, &mut sum, &mut ws).unwrap();
+                let same =
+                    |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits());
+                assert!(
+                    same(&ws, &wsum_ref),
+                    "wsum, C {c} r {radius} it {iterations}"
+                );
+                assert!(same(&sum, &ws_ref), "sum, C {c} r {radius} it {iterations}");
+            }
+        }
     }
 
     /// Placement one sample at a time (the fixed-point iteration as documented).
