@@ -1424,6 +1424,23 @@ fn soft_sign_diff(out: &mut [f32], a: &[f32], b: &[f32], eps: f32) {
     }
 }
 
+/// [`soft_sign_diff`] times `m[i]`, element by element (`soft(t) * m`).
+#[inline(always)]
+fn soft_sign_diff_times(out: &mut [f32], a: &[f32], b: &[f32], m: &[f32], eps: f32) {
+    if eps > 0.0 {
+        let e2 = eps * eps;
+        for (((o, &va), &vb), &vm) in out.iter_mut().zip(a).zip(b).zip(m) {
+            let t = va - vb;
+            *o = (t / (t * t + e2).sqrt()) * vm;
+        }
+    } else {
+        soft_sign_diff(out, a, b, eps);
+        for (o, &vm) in out.iter_mut().zip(m) {
+            *o *= vm;
+        }
+    }
+}
+
 /// `dst = sum_t taps[t] src[x + t - r]` along one row of `w` pixels of `c` channels,
 /// clamped at the ends (via `pad`, `(w + 2r) c` long).
 #[inline(always)]
@@ -1436,9 +1453,45 @@ fn blur_row(src: &[f32], dst: &mut [f32], pad: &mut [f32], w: usize, c: usize, t
         let e = (r + w + k) * c;
         pad[e..e + c].copy_from_slice(&src[row_len - c..]);
     }
+    let pad: &[f32] = pad;
+    weighted_rows(dst, taps, |t| &pad[t * c..t * c + row_len]);
+}
+
+/// `dst[i] = sum_t taps[t] rows(t)[i]`, the terms added in order of `t` from 0 (as
+/// `dst` zeroed, then `dst += taps[t] rows(t)` tap by tap, but in registers: one pass
+/// over `dst`). `rows(t)` has `dst.len()` elements. The usual tap counts are constants
+/// here, so that the loop over taps unrolls and the one over `i` vectorises.
+#[inline(always)]
+fn weighted_rows<'r>(dst: &mut [f32], taps: &[f32], rows: impl Fn(usize) -> &'r [f32]) {
+    #[inline(always)]
+    fn fixed<const K: usize>(dst: &mut [f32], taps: &[f32; K], rows: [&[f32]; K]) {
+        let n = dst.len();
+        let rows: [&[f32]; K] = rows.map(|r| &r[..n]);
+        for (i, o) in dst.iter_mut().enumerate() {
+            let mut acc = 0.0f32;
+            for t in 0..K {
+                acc += taps[t] * rows[t][i];
+            }
+            *o = acc;
+        }
+    }
+    macro_rules! go {
+        ($k:literal) => {
+            if let Ok(t) = <&[f32; $k]>::try_from(taps) {
+                return fixed::<$k>(dst, t, std::array::from_fn(|i| rows(i)));
+            }
+        };
+    }
+    go!(1);
+    go!(3);
+    go!(5);
+    go!(7);
+    go!(9);
+    go!(11);
+    go!(13);
     dst.fill(0.0);
     for (t, &g) in taps.iter().enumerate() {
-        for (o, &v) in dst.iter_mut().zip(&pad[t * c..t * c + row_len]) {
+        for (o, &v) in dst.iter_mut().zip(rows(t)) {
             *o += g * v;
         }
     }
@@ -1509,6 +1562,8 @@ struct BtvScratch {
     hx: Vec<f32>,
     g: Vec<f32>,
     reg: Vec<f32>,
+    /// A's row, each weight repeated over the channels.
+    arow: Vec<f32>,
 }
 
 impl BtvScratch {
@@ -1524,6 +1579,7 @@ impl BtvScratch {
             hx: vec![0.0; row_len],
             g: vec![0.0; row_len],
             reg: vec![0.0; row_len],
+            arow: vec![0.0; row_len],
         }
     }
 }
@@ -1557,20 +1613,16 @@ fn ensure_dh(job: &BtvStep<'_>, sc: &mut BtvScratch, y: usize) {
     for t in 0..job.taps.len() {
         ensure_xh(job, sc, clamp_row(y, t, r, h));
     }
-    sc.hx.fill(0.0);
-    for (t, &g) in job.taps.iter().enumerate() {
-        let src = sc.xh.row(clamp_row(y, t, r, h));
-        for (o, &v) in sc.hx.iter_mut().zip(src) {
-            *o += g * v;
-        }
-    }
-    // d = A sign(H x - z), into `g` (free until the row's own gradient is formed).
+    let xh = &sc.xh;
+    weighted_rows(&mut sc.hx, job.taps, |t| xh.row(clamp_row(y, t, r, h)));
+    // d = A sign(H x - z), into `g` (free until the row's own gradient is formed): the
+    // signs times A's row spread over the channels (`sign * a`, as before).
     let z = &job.z[y * row_len..(y + 1) * row_len];
-    soft_sign_diff(&mut sc.g, &sc.hx, z, job.eps);
     let a = &job.a[y * w..(y + 1) * w];
-    for (px, &aw) in sc.g.chunks_exact_mut(c).zip(a) {
-        px.iter_mut().for_each(|v| *v *= aw);
+    for (px, &aw) in sc.arow.chunks_exact_mut(c).zip(a) {
+        px.fill(aw);
     }
+    soft_sign_diff_times(&mut sc.g, &sc.hx, z, &sc.arow, job.eps);
     blur_row(&sc.g, sc.dh.claim(y), &mut sc.pad, w, c, job.taps);
 }
 
@@ -1621,13 +1673,8 @@ fn btv_rows(job: &BtvStep<'_>, first: usize, out: &mut [f32]) -> Result<()> {
         for t in 0..k {
             ensure_dh(job, &mut sc, clamp_row(y, t, r, h));
         }
-        sc.g.fill(0.0);
-        for (t, &g) in job.taps.iter().enumerate() {
-            let src = sc.dh.row(clamp_row(y, t, r, h));
-            for (o, &v) in sc.g.iter_mut().zip(src) {
-                *o += g * v;
-            }
-        }
+        let dh = &sc.dh;
+        weighted_rows(&mut sc.g, job.taps, |t| dh.row(clamp_row(y, t, r, h)));
         // BTV term: sum over all shifts s of w_s D_s(p), which (D_{-s}(p) = -D_s(p - s))
         // is the sum over half of them of w_s (D_s(p) - D_s(p - s)).
         for yy in y.saturating_sub(job.window)..=y {
@@ -2213,6 +2260,35 @@ mod tests {
                 .all(|(a, b)| a.to_bits() == b.to_bits())
         );
         assert!(got.iter().filter(|v| v.is_finite()).count() > m / 2);
+    }
+
+    #[test]
+    fn weighted_rows_add_taps_in_order() {
+        // The unrolled sums (tap counts 1..=13) equal tap-by-tap accumulation exactly.
+        let rows: Vec<Vec<f32>> = (0..13)
+            .map(|t| {
+                (0..101)
+                    .map(|i| ((i * 7 + t * 13) % 17) as f32 * 0.37 - 2.0)
+                    .collect()
+            })
+            .collect();
+        for k in [1usize, 3, 5, 7, 9, 11, 13, 2] {
+            let taps: Vec<f32> = (0..k).map(|t| 0.1 + t as f32 * 0.173).collect();
+            let mut got = vec![0f32; 101];
+            weighted_rows(&mut got, &taps, |t| &rows[t]);
+            let mut want = vec![0f32; 101];
+            for (t, &g) in taps.iter().enumerate() {
+                for (o, &v) in want.iter_mut().zip(&rows[t]) {
+                    *o += g * v;
+                }
+            }
+            assert!(
+                got.iter()
+                    .zip(&want)
+                    .all(|(a, b)| a.to_bits() == b.to_bits()),
+                "{k}"
+            );
+        }
     }
 
     #[test]
