@@ -741,8 +741,11 @@ struct SplatJob<'a> {
 
 /// Where a pass writes one band's rows.
 enum BandOut<'o> {
-    /// The sums and the weights (the last pass).
+    /// The sums and the weights (the last pass of [`shift_and_add`]).
     Sums(&'o mut [f32], &'o mut [f32]),
+    /// The fused image, the weights and where the image has data (the last pass of
+    /// [`shift_and_add_mean`], with its `min_weight`).
+    Mean(&'o mut [f32], &'o mut [f32], &'o mut [bool], f32),
     /// The estimate `sum / wsum` (NaN where `wsum <= 1e-6`), for the next pass.
     Estimate(&'o mut [f32]),
 }
@@ -750,8 +753,39 @@ enum BandOut<'o> {
 impl BandOut<'_> {
     fn rows(&self, fine_w: usize) -> usize {
         match self {
-            BandOut::Sums(_, ws) => ws.len() / fine_w,
+            BandOut::Sums(_, ws) | BandOut::Mean(_, ws, _, _) => ws.len() / fine_w,
             BandOut::Estimate(e) => e.len() / (fine_w * EST_LANES),
+        }
+    }
+}
+
+/// What a pass writes, all bands.
+enum PassOut<'o> {
+    Sums(&'o mut [f32], &'o mut [f32]),
+    Mean(&'o mut [f32], &'o mut [f32], &'o mut [bool], f32),
+    Estimate(&'o mut [f32]),
+}
+
+impl<'o> PassOut<'o> {
+    /// One [`BandOut`] per band of `band_rows` rows.
+    fn bands(self, fine_w: usize, c: usize, band_rows: usize) -> Vec<BandOut<'o>> {
+        let px = band_rows * fine_w;
+        match self {
+            PassOut::Sums(s, ws) => s
+                .chunks_mut(px * c)
+                .zip(ws.chunks_mut(px))
+                .map(|(s, ws)| BandOut::Sums(s, ws))
+                .collect(),
+            PassOut::Mean(m, ws, have, min_weight) => m
+                .chunks_mut(px * c)
+                .zip(ws.chunks_mut(px))
+                .zip(have.chunks_mut(px))
+                .map(|((m, ws), have)| BandOut::Mean(m, ws, have, min_weight))
+                .collect(),
+            PassOut::Estimate(e) => e
+                .chunks_mut(px * EST_LANES)
+                .map(BandOut::Estimate)
+                .collect(),
         }
     }
 }
@@ -921,6 +955,26 @@ fn splat_band<const C: usize, const L: usize>(
                 for ((a, ws), s) in row.iter().zip(ws).zip(s.chunks_exact_mut(C)) {
                     *ws = a[C];
                     s.copy_from_slice(&a[..C]);
+                }
+            }
+        }
+        BandOut::Mean(mean, wsum, have, min_weight) => {
+            for (((row, ws), m), hv) in rows
+                .zip(wsum.chunks_exact_mut(fine_w))
+                .zip(mean.chunks_exact_mut(fine_w * C))
+                .zip(have.chunks_exact_mut(fine_w))
+            {
+                for (((a, ws), m), hv) in row.iter().zip(ws).zip(m.chunks_exact_mut(C)).zip(hv) {
+                    *ws = a[C];
+                    let mut ok = a[C] >= min_weight;
+                    for (o, &v) in m.iter_mut().zip(&a[..C]) {
+                        *o = v / a[C];
+                        ok &= o.is_finite();
+                    }
+                    if !ok {
+                        m.fill(0.0);
+                    }
+                    *hv = ok;
                 }
             }
         }
@@ -1106,17 +1160,14 @@ fn splat3<const L: usize>(
     }
 }
 
-/// One accumulation pass over all bands: into `sum` and `wsum` (`Some`), or the
-/// estimate for the next pass into `sum` (`wsum` `None`).
+/// One accumulation pass over all bands, into `out`.
 fn splat_pass<const C: usize, const L: usize>(
     job: &SplatJob<'_>,
-    sum: &mut [f32],
-    wsum: Option<&mut [f32]>,
+    out: PassOut<'_>,
     threads: usize,
 ) -> Result<()> {
-    let (fine_w, c) = (job.fine_w, C);
-    let band_rows = job.bins.band_rows;
-    let go = |acc: &mut Vec<[f32; L]>, band: usize, out: BandOut<'_>| {
+    let fine_w = job.fine_w;
+    let go = |acc: &mut Vec<[f32; L]>, (band, out): (usize, BandOut<'_>)| {
         simd::run_avx2_or_portable(
             true,
             SplatBand::<C, L> {
@@ -1127,40 +1178,18 @@ fn splat_pass<const C: usize, const L: usize>(
             },
         );
     };
-    let chunk = band_rows * fine_w * c;
-    let serial = parallel::run_serially(job.fine_h * fine_w * (c + 1) * 4, threads);
-    match wsum {
-        Some(wsum) if serial => {
-            let mut acc = Vec::new();
-            for (b, (s, ws)) in sum
-                .chunks_mut(chunk)
-                .zip(wsum.chunks_mut(band_rows * fine_w))
+    let bands = out.bands(fine_w, C, job.bins.band_rows);
+    if parallel::run_serially(job.fine_h * fine_w * (C + 1) * 4, threads) {
+        let mut acc = Vec::new();
+        bands.into_iter().enumerate().for_each(|b| go(&mut acc, b));
+        Ok(())
+    } else {
+        parallel::install(|| {
+            bands
+                .into_par_iter()
                 .enumerate()
-            {
-                go(&mut acc, b, BandOut::Sums(s, ws));
-            }
-            Ok(())
-        }
-        Some(wsum) => parallel::install(|| {
-            sum.par_chunks_mut(chunk)
-                .zip(wsum.par_chunks_mut(band_rows * fine_w))
-                .enumerate()
-                .for_each_init(Vec::new, |acc, (b, (s, ws))| {
-                    go(acc, b, BandOut::Sums(s, ws));
-                });
-        }),
-        None if serial => {
-            let mut acc = Vec::new();
-            for (b, e) in sum.chunks_mut(band_rows * fine_w * EST_LANES).enumerate() {
-                go(&mut acc, b, BandOut::Estimate(e));
-            }
-            Ok(())
-        }
-        None => parallel::install(|| {
-            sum.par_chunks_mut(band_rows * fine_w * EST_LANES)
-                .enumerate()
-                .for_each_init(Vec::new, |acc, (b, e)| go(acc, b, BandOut::Estimate(e)));
-        }),
+                .for_each_init(Vec::new, go);
+        })
     }
 }
 
@@ -1242,6 +1271,98 @@ pub fn shift_and_add(
     sum: &mut [f32],
     wsum: &mut [f32],
 ) -> Result<()> {
+    check_len(
+        "sum",
+        sum.len(),
+        mul("sum", &[fine_h, fine_w, channels])?,
+        "(H, W, C)",
+    )?;
+    check_len(
+        "wsum",
+        wsum.len(),
+        mul("wsum", &[fine_h, fine_w])?,
+        "(H, W)",
+    )?;
+    splat_all(
+        positions,
+        values,
+        weights,
+        channels,
+        fine_h,
+        fine_w,
+        params,
+        PassOut::Sums(sum, wsum),
+    )
+}
+
+/// [`shift_and_add`] that writes the fused image instead of the sums: `mean`
+/// `(fine_h, fine_w, C)` gets `sum / wsum` where `wsum >= min_weight` and that is finite
+/// in every channel, else 0; `have` `(fine_h, fine_w)` is true there (false: the pixels
+/// to fill); `wsum` as in [`shift_and_add`]. The values are those `sum / wsum` gives
+/// with [`shift_and_add`]'s sums, without a pass over them.
+///
+/// # Errors
+/// As [`shift_and_add`]; `min_weight` if it is NaN.
+#[allow(clippy::too_many_arguments)]
+pub fn shift_and_add_mean(
+    positions: &[f32],
+    values: &[f32],
+    weights: Option<&[f32]>,
+    channels: usize,
+    fine_h: usize,
+    fine_w: usize,
+    params: &SplatParams,
+    min_weight: f32,
+    mean: &mut [f32],
+    wsum: &mut [f32],
+    have: &mut [bool],
+) -> Result<()> {
+    check_len(
+        "mean",
+        mean.len(),
+        mul("mean", &[fine_h, fine_w, channels])?,
+        "(H, W, C)",
+    )?;
+    check_len(
+        "wsum",
+        wsum.len(),
+        mul("wsum", &[fine_h, fine_w])?,
+        "(H, W)",
+    )?;
+    check_len(
+        "have",
+        have.len(),
+        mul("have", &[fine_h, fine_w])?,
+        "(H, W)",
+    )?;
+    if min_weight.is_nan() {
+        return Err(Error::invalid_argument("min_weight", "is NaN"));
+    }
+    splat_all(
+        positions,
+        values,
+        weights,
+        channels,
+        fine_h,
+        fine_w,
+        params,
+        PassOut::Mean(mean, wsum, have, min_weight),
+    )
+}
+
+/// The passes of [`shift_and_add`] (sizes of the output checked by the caller); the
+/// last one writes `last`.
+#[allow(clippy::too_many_arguments)]
+fn splat_all(
+    positions: &[f32],
+    values: &[f32],
+    weights: Option<&[f32]>,
+    channels: usize,
+    fine_h: usize,
+    fine_w: usize,
+    params: &SplatParams,
+    last: PassOut<'_>,
+) -> Result<()> {
     if !(1..=MAX_CHANNELS).contains(&channels) {
         return Err(Error::invalid_argument(
             "values",
@@ -1267,18 +1388,6 @@ pub fn shift_and_add(
     if fine_h == 0 || fine_w == 0 {
         return Err(Error::invalid_argument("shape", "the fine grid is empty"));
     }
-    check_len(
-        "sum",
-        sum.len(),
-        mul("sum", &[fine_h, fine_w, channels])?,
-        "(H, W, C)",
-    )?;
-    check_len(
-        "wsum",
-        wsum.len(),
-        mul("wsum", &[fine_h, fine_w])?,
-        "(H, W)",
-    )?;
     if !(params.factor > 0.0 && params.factor <= MAX_FACTOR) {
         return Err(Error::invalid_argument(
             "factor",
@@ -1327,6 +1436,7 @@ pub fn shift_and_add(
         }
     };
     let (mut est_a, mut est_b) = (scratch(1), scratch(2));
+    let mut last = Some(last);
     for pass in 0..=params.iterations {
         if pass >= 2 {
             std::mem::swap(&mut est_a, &mut est_b);
@@ -1346,20 +1456,80 @@ pub fn shift_and_add(
             params,
             est: read,
         };
-        let last = pass == params.iterations;
-        let (target, ws): (&mut [f32], Option<&mut [f32]>) = if last {
-            (&mut *sum, Some(&mut *wsum))
+        let out = if pass == params.iterations {
+            last.take()
+                .ok_or_else(|| Error::Numerical("shift_and_add: no last pass".into()))?
         } else {
-            (write, None)
+            PassOut::Estimate(write)
         };
         match channels {
-            1 => splat_pass::<1, 4>(&job, target, ws, threads)?,
-            2 => splat_pass::<2, 4>(&job, target, ws, threads)?,
-            3 => splat_pass::<3, 4>(&job, target, ws, threads)?,
-            _ => splat_pass::<4, 8>(&job, target, ws, threads)?,
+            1 => splat_pass::<1, 4>(&job, out, threads)?,
+            2 => splat_pass::<2, 4>(&job, out, threads)?,
+            3 => splat_pass::<3, 4>(&job, out, threads)?,
+            _ => splat_pass::<4, 8>(&job, out, threads)?,
         }
     }
     Ok(())
+}
+
+/// The `k`-th smallest (from 0) of the positive values of `v` (NaN and non-positive
+/// ones left out), `k` below their count: a radix select on the bit patterns, which
+/// order positive floats as their values do (two passes of 16 bits, no sorting).
+fn kth_positive(v: &[f32], k: usize) -> f32 {
+    let mut counts = vec![0usize; 1 << 16];
+    for &x in v {
+        if positive(x) {
+            counts[(x.to_bits() >> 16) as usize] += 1;
+        }
+    }
+    let (mut hi, mut below) = (0usize, 0usize);
+    for (b, &n) in counts.iter().enumerate() {
+        if below + n > k {
+            hi = b;
+            break;
+        }
+        below += n;
+    }
+    counts.fill(0);
+    for &x in v {
+        if positive(x) && (x.to_bits() >> 16) as usize == hi {
+            counts[(x.to_bits() & 0xffff) as usize] += 1;
+        }
+    }
+    let mut lo = 0usize;
+    for (b, &n) in counts.iter().enumerate() {
+        if below + n > k {
+            lo = b;
+            break;
+        }
+        below += n;
+    }
+    f32::from_bits(((hi as u32) << 16) | lo as u32)
+}
+
+/// The deblurring's data weights from the shift-and-add weights `wsum`:
+/// `a = sqrt(clip(wsum / t, 0, 4))` in f32, `t` the median of the positive weights (1
+/// if there are none). The median is numpy's: the middle value, or for an even count
+/// the f32 mean of the two middle ones, so `a` is what
+/// `np.sqrt(np.clip(wsum / float(np.median(wsum[wsum > 0])), 0, 4))` gives. Returns `t`.
+///
+/// # Errors
+/// [`Error::InvalidArgument`] naming `a` if its length differs from `wsum`'s.
+pub fn data_weights(wsum: &[f32], a: &mut [f32]) -> Result<f32> {
+    check_len("a", a.len(), wsum.len(), "wsum's size")?;
+    let n = wsum.iter().filter(|&&x| positive(x)).count();
+    let t = match n {
+        0 => 1.0,
+        _ if n % 2 == 1 => kth_positive(wsum, n / 2),
+        _ => (kth_positive(wsum, n / 2 - 1) + kth_positive(wsum, n / 2)) / 2.0,
+    };
+    parallel::for_each_row_chunk(a, 1, |first, rows| {
+        for (o, &w) in rows.iter_mut().zip(&wsum[first..]) {
+            *o = (w / t).clamp(0.0, 4.0).sqrt();
+        }
+        Ok(())
+    })?;
+    Ok(t)
 }
 
 // --------------------------------------------------------------------------------------
