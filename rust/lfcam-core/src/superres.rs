@@ -1062,19 +1062,23 @@ fn splat3_block<const C: usize, const L: usize>(
             *v = exp_neg(*v);
         }
     }
+    let mut w0 = [1f32; B];
+    if let Some(wt) = job.weights.and_then(|wt| wt.get(k0..k0 + n)) {
+        w0[..n].copy_from_slice(wt);
+    }
+    let mut wk = w0;
+    if let Some(est) = job.est {
+        robust_weights::<C>(job, est, k0, n, &fx, &fy, &w0, &mut wk);
+    }
     for i in 0..n {
         let k = k0 + i;
-        let w0 = job.weights.map_or(1.0, |wt| wt[k]);
-        if !(positive(w0) && fx[i].is_finite() && fy[i].is_finite()) {
+        if !(positive(w0[i]) && fx[i].is_finite() && fy[i].is_finite()) {
             continue;
         }
         let Some(v) = job.values.get(k * C..(k + 1) * C) else {
             continue;
         };
-        let wk = match job.est {
-            Some(est) => robust_weight::<C>(job, est, v, fx[i], fy[i], w0),
-            None => w0,
-        };
+        let wk = wk[i];
         if !positive(wk) || v.iter().any(|c| !c.is_finite()) {
             continue;
         }
@@ -1089,6 +1093,93 @@ fn splat3_block<const C: usize, const L: usize>(
             g[0][i], g[1][i], g[2][i], 0.0, g[4][i], g[5][i], g[6][i], 0.0,
         ];
         splat3::<L>(acc, stride, row_lo, row_hi, xc, yc, wk, &e, &vv);
+    }
+}
+
+/// [`robust_weight`] for the samples `k0..k0 + n` of a block (`wk[i]` for sample
+/// `k0 + i`, from its fine position `(fx[i], fy[i])` and base weight `w0[i]`; lanes
+/// whose sample is unusable get some value, not read): the same arithmetic per sample,
+/// as loops over the block that vectorise, around a loop that fetches the estimate's
+/// corners.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn robust_weights<const C: usize>(
+    job: &SplatJob<'_>,
+    est: &[f32],
+    k0: usize,
+    n: usize,
+    fx: &[f32; SPLAT_BLOCK],
+    fy: &[f32; SPLAT_BLOCK],
+    w0: &[f32; SPLAT_BLOCK],
+    wk: &mut [f32; SPLAT_BLOCK],
+) {
+    const B: usize = SPLAT_BLOCK;
+    let (h, w) = (job.fine_h, job.fine_w);
+    let (huber, reject) = (job.params.huber, job.params.reject);
+    let (xmax, ymax) = ((w - 1) as f32, (h - 1) as f32);
+    // Bilinear weights of the corners (y0, x0), (y0, x1), (y1, x0), (y1, x1), as
+    // `estimate_at` forms them, and where the corners are.
+    let mut b = [[0f32; B]; 4];
+    let mut at = [[0usize; 4]; B];
+    for i in 0..B {
+        let xc = fx[i].clamp(0.0, xmax);
+        let yc = fy[i].clamp(0.0, ymax);
+        let x0 = (xc as usize).min(w - 1);
+        let y0 = (yc as usize).min(h - 1);
+        let x1 = (x0 + 1).min(w - 1);
+        let y1 = (y0 + 1).min(h - 1);
+        let (tx, ty) = (xc - x0 as f32, yc - y0 as f32);
+        b[0][i] = (1.0 - tx) * (1.0 - ty);
+        b[1][i] = tx * (1.0 - ty);
+        b[2][i] = (1.0 - tx) * ty;
+        b[3][i] = tx * ty;
+        at[i] = [
+            (y0 * w + x0) * EST_LANES,
+            (y0 * w + x1) * EST_LANES,
+            (y1 * w + x0) * EST_LANES,
+            (y1 * w + x1) * EST_LANES,
+        ];
+    }
+    // The corners' estimates and the samples' values, channel by channel.
+    let mut e = [[[0f32; B]; C]; 4];
+    let mut v = [[0f32; B]; C];
+    for i in 0..n {
+        for (corner, &p) in at[i].iter().enumerate() {
+            if let Some(px) = est.get(p..p + C) {
+                for (ch, &x) in px.iter().enumerate() {
+                    e[corner][ch][i] = x;
+                }
+            }
+        }
+        if let Some(px) = job.values.get((k0 + i) * C..(k0 + i + 1) * C) {
+            for (ch, &x) in px.iter().enumerate() {
+                v[ch][i] = x;
+            }
+        }
+    }
+    for i in 0..B {
+        // The estimate: corners without one add exact zeros (see `estimate_at`).
+        let mut total = 0.0f32;
+        let mut out = [0f32; C];
+        for corner in 0..4 {
+            let bc = b[corner][i];
+            let used = !e[corner][0][i].is_nan() && bc > 0.0;
+            total += if used { bc } else { 0.0 };
+            for ch in 0..C {
+                out[ch] += if used { bc * e[corner][ch][i] } else { 0.0 };
+            }
+        }
+        let mut err = -0.0f32;
+        for ch in 0..C {
+            err += (v[ch][i] - out[ch] / total).abs();
+        }
+        let err = err / C as f32;
+        let keep = err <= reject; // false for NaN
+        let damped = w0[i] * huber / err;
+        let weight = if err > huber { damped } else { w0[i] };
+        let weight = if keep { weight } else { 0.0 };
+        // No estimate there yet: the sample keeps its weight.
+        wk[i] = if total < 0.25 { w0[i] } else { weight };
     }
 }
 
