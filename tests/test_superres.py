@@ -93,6 +93,41 @@ def test_shift_and_add_parallel_equals_serial() -> None:
     np.testing.assert_array_equal(a[1], b[1])
 
 
+def test_shift_and_add_mean_is_the_fused_image() -> None:
+    """The core's fused image equals shift_and_add's sum / wsum where wsum >= min_weight
+    (exactly), 0 elsewhere, and says where it has data."""
+    rng = np.random.default_rng(11)
+    pos, val, w = _samples(rng, 30000, 3, 70)
+    args = (pos, val, w, 150, 140, 2.0, 0.4, 1, 1, 0.015, 0.15)
+    s, ws = _lfcam.shift_and_add(*args)
+    mean, ws2, have = _lfcam.shift_and_add_mean(*args, 0.05)
+    np.testing.assert_array_equal(ws, ws2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        z = s / ws[..., None]
+    want = (ws >= np.float32(0.05)) & np.isfinite(z).all(-1)
+    assert have.dtype == np.bool_
+    np.testing.assert_array_equal(have, want)
+    assert 0.3 < have.mean() < 1
+    np.testing.assert_array_equal(mean, np.where(want[..., None], z, 0))
+
+
+@pytest.mark.parametrize("n", [0, 1, 2, 7, 1000, 4097])
+def test_data_weights_match_numpy(n) -> None:
+    """a = sqrt(clip(wsum / median(wsum[wsum > 0]), 0, 4)), with numpy's median (odd and
+    even counts), bit for bit."""
+    rng = np.random.default_rng(n)
+    wsum = np.zeros((67, 71), np.float32)
+    flat = wsum.reshape(-1)
+    idx = rng.choice(flat.size, n, replace=False)
+    flat[idx] = rng.gamma(2.0, 3.0, n).astype(np.float32)
+    if n > 10:
+        flat[idx[:5]] = flat[idx[5]]  # ties
+    positive = wsum[wsum > 0]
+    typical = float(np.median(positive)) if positive.size else 1.0
+    want = np.sqrt(np.clip(wsum / typical, 0, 4)).astype(np.float32)
+    np.testing.assert_array_equal(_lfcam.data_weights(wsum), want)
+
+
 def test_robust_shift_and_add_rejects_outliers() -> None:
     """One sample in five is an outlier (e.g. an occluder): the plain mean is pulled
     by about 0.16, the robust fusion stays within 0.01 of the true value."""

@@ -12,6 +12,7 @@ __all__ = [
     "_raise_core_error",
     "btv_deblur",
     "crop_lenslets",
+    "data_weights",
     "get_num_threads",
     "invert_maps",
     "nan_median",
@@ -21,6 +22,7 @@ __all__ = [
     "remap_bilinear",
     "set_num_threads",
     "shift_and_add",
+    "shift_and_add_mean",
     "triangulate",
     "weighted_median_fill",
 ]
@@ -149,6 +151,26 @@ def shift_and_add(
     reject: float,
 ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """Robust shift-and-add onto a fine grid: (sum (H, W, C), wsum (H, W))."""
+
+def shift_and_add_mean(
+    positions: NDArray[np.float32],
+    values: NDArray[np.float32],
+    weights: NDArray[np.float32] | None,
+    fine_height: int,
+    fine_width: int,
+    factor: float,
+    sigma: float,
+    radius: int,
+    iterations: int,
+    huber: float,
+    reject: float,
+    min_weight: float,
+) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.bool_]]:
+    """shift_and_add's fused image: (sum / wsum where wsum >= min_weight, else 0;
+    wsum; where the image has data)."""
+
+def data_weights(wsum: NDArray[np.float32]) -> NDArray[np.float32]:
+    """sqrt(clip(wsum / t, 0, 4)), t numpy's median of the positive weights (1 if none)."""
 
 def btv_deblur(
     z: NDArray[np.float32],

@@ -357,6 +357,12 @@ def fill_holes(
     """
     have = (weight >= min_weight) & np.isfinite(image).all(-1)
     out = np.where(have[..., None], image, np.float32(0)).astype(np.float32, copy=False)
+    return _fill_where(out, have)
+
+
+def _fill_where(out: NDArray[np.float32], have: NDArray[np.bool_]) -> NDArray[np.float32]:
+    """:func:`fill_holes` once ``have`` (the pixels with data) is known and ``out`` (the
+    image, 0 elsewhere, ours to change) is prepared: fills ``out``'s holes in place."""
     hole = ~have
     if not hole.any() or not have.any():
         return out
@@ -492,26 +498,27 @@ def super_resolve(
         _, view = inverse_maps(cal)
         weights = np.isin(view, sel).astype(np.float32)
     H, W = (int(x) for x in cal.rect_shape)
-    sums, wsum = shift_and_add(
+    # The fused image sum / wsum (0 where wsum < 1e-3: the holes) straight from the
+    # core, as fill_holes(sum / wsum, wsum) would prepare it, without passes over it.
+    z, wsum, have = _lfcam.shift_and_add_mean(
         positions,
         values,
-        (r * H, r * W),
-        r,
-        weights=weights,
-        sigma=p.kernel_sigma,
-        radius=p.kernel_radius,
-        iterations=p.robust_iterations,
-        huber=p.huber,
-        reject=p.reject,
+        weights,
+        r * H,
+        r * W,
+        float(r),
+        float(p.kernel_sigma),
+        int(p.kernel_radius),
+        int(p.robust_iterations),
+        float(p.huber),
+        float(p.reject),
+        1e-3,
     )
-    with np.errstate(invalid="ignore", divide="ignore"):
-        z = np.divide(sums, wsum[..., None], out=sums)  # sums is ours: divided in place
-    z = fill_holes(z, wsum)
+    z = _fill_where(z, have)
     if p.deblur_iterations <= 0:
         return z
-    positive = wsum[wsum > 0]
-    typical = float(np.median(positive)) if positive.size else 1.0
-    a = np.sqrt(np.clip(wsum / typical, 0, 4)).astype(np.float32)
+    # sqrt(clip(wsum / median(wsum[wsum > 0]), 0, 4)), numpy's median, in one pass.
+    a = _lfcam.data_weights(wsum)
     psf = math.sqrt((p.psf_sigma * r) ** 2 + p.kernel_sigma**2)
     return _lfcam.btv_deblur(
         z, a, None, psf, p.lam, p.alpha, p.window, p.deblur_iterations, p.step, p.eps

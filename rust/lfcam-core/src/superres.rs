@@ -285,7 +285,7 @@ pub fn invert_maps(
 /// Bilinear sample of a `(h, w)` map at `(x, y)`, skipping NaN corners (the others are
 /// renormalised); NaN if the finite corners carry less than half the weight or the
 /// point is outside the map by more than half a pixel.
-#[inline]
+#[inline(always)]
 fn sample_nan_aware(map: &[f32], h: usize, w: usize, x: f32, y: f32) -> f32 {
     if !(x >= -0.5 && y >= -0.5 && x <= w as f32 - 0.5 && y <= h as f32 - 0.5) {
         return f32::NAN;
@@ -300,23 +300,14 @@ fn sample_nan_aware(map: &[f32], h: usize, w: usize, x: f32, y: f32) -> f32 {
     let (v00, v01) = (map[y0 * w + x0], map[y0 * w + x1]);
     let (v10, v11) = (map[y1 * w + x0], map[y1 * w + x1]);
     if (v00 + v01 + v10 + v11).is_finite() {
-        // All four corners known (the usual case): the plain bilinear value, summed in
-        // the same order as below so both paths agree.
-        let terms = [
-            ((1.0 - tx) * (1.0 - ty), v00),
-            (tx * (1.0 - ty), v01),
-            ((1.0 - tx) * ty, v10),
-            (tx * ty, v11),
-        ];
-        let mut acc = 0.0f32;
-        let mut wsum = 0.0f32;
-        for (wt, v) in terms {
-            if wt > 0.0 {
-                acc += wt * v;
-                wsum += wt;
-            }
-        }
-        return if wsum >= 0.5 { acc / wsum } else { f32::NAN };
+        // All four corners known (the usual case): the plain bilinear value. Adding the
+        // terms of zero weight too changes nothing (`acc + 0 == acc`), so this is the
+        // sum of the loop below, in the same order, without its branches.
+        let (w00, w01) = ((1.0 - tx) * (1.0 - ty), tx * (1.0 - ty));
+        let (w10, w11) = ((1.0 - tx) * ty, tx * ty);
+        let acc = w00 * v00 + w01 * v01 + w10 * v10 + w11 * v11;
+        let wsum = w00 + w01 + w10 + w11;
+        return acc / wsum;
     }
     let mut acc = 0.0f32;
     let mut wsum = 0.0f32;
@@ -393,50 +384,129 @@ pub fn place_samples(
             format!("has {} rows, but view index {bad} is used", offsets.len()),
         ));
     }
-    let tol = params.tolerance;
-    let body = |first: usize, rows: &mut [f32]| -> Result<()> {
-        for (j, o) in rows.chunks_exact_mut(2).enumerate() {
-            // Rows of 2 elements: row `first + j` is sample `first + j`.
-            let idx = first + j;
-            let vi = view[idx];
-            let (qx, qy) = (inv[2 * idx], inv[2 * idx + 1]);
-            if vi < 0 || !qx.is_finite() || !qy.is_finite() {
-                o[0] = f32::NAN;
-                o[1] = f32::NAN;
-                continue;
-            }
-            let off = offsets[vi as usize];
-            let (ox, oy) = (off[0] as f32, off[1] as f32);
-            if ox == 0.0 && oy == 0.0 {
-                o[0] = qx;
-                o[1] = qy;
-                continue;
-            }
-            let (mut px, mut py) = (qx, qy);
-            let mut s = sample_nan_aware(parallax, h, w, px, py);
-            for _ in 0..params.iterations {
-                if !s.is_finite() {
-                    break;
-                }
-                let (nx, ny) = (qx - ox * s, qy - oy * s);
-                let moved = (nx - px).abs() + (ny - py).abs();
-                px = nx;
-                py = ny;
-                s = sample_nan_aware(parallax, h, w, px, py);
-                if moved < 1e-4 {
-                    break; // converged: p no longer moves
-                }
-            }
-            let ok = s.is_finite() && {
-                let (ex, ey) = (px + ox * s - qx, py + oy * s - qy);
-                ex * ex + ey * ey <= tol * tol
-            };
-            o[0] = if ok { px } else { f32::NAN };
-            o[1] = if ok { py } else { f32::NAN };
-        }
-        Ok(())
+    let offs: Vec<[f32; 2]> = offsets.iter().map(|o| [o[0] as f32, o[1] as f32]).collect();
+    let job = PlaceJob {
+        inv,
+        view,
+        offsets: &offs,
+        parallax,
+        h,
+        w,
+        iterations: params.iterations,
+        tolerance: params.tolerance,
     };
-    parallel::for_each_row_chunk(out, 2, body)
+    parallel::for_each_row_chunk(out, 2, |first, rows| {
+        place_task(&job, first, rows);
+        Ok(())
+    })
+}
+
+/// What [`place_samples`] reads (sizes checked).
+struct PlaceJob<'a> {
+    inv: &'a [f32],
+    view: &'a [i32],
+    offsets: &'a [[f32; 2]],
+    parallax: &'a [f32],
+    h: usize,
+    w: usize,
+    iterations: usize,
+    tolerance: f32,
+}
+
+/// Samples placed side by side: their fixed-point iterations are independent, so
+/// stepping [`PLACE_LANES`] of them together lets the CPU overlap their look-ups
+/// (one sample's iterations form a chain of dependent loads).
+const PLACE_LANES: usize = 8;
+
+simd::avx2_or_portable!(
+    true,
+    /// [`place_rows`], compiled for AVX2 and for the baseline.
+    fn place_task(job: &PlaceJob<'_>, first: usize, out: &mut [f32]) -> () {
+        place_rows(job, first, out)
+    }
+);
+
+/// Samples `first..` into `out` (2 floats each), [`PLACE_LANES`] at a time. Each
+/// sample goes through exactly the arithmetic of the one-at-a-time iteration (see
+/// [`place_samples`]), so the result does not depend on the grouping.
+#[inline(always)]
+fn place_rows(job: &PlaceJob<'_>, first: usize, out: &mut [f32]) {
+    const L: usize = PLACE_LANES;
+    let (h, w, par) = (job.h, job.w, job.parallax);
+    let tol2 = job.tolerance * job.tolerance;
+    for (g, group) in out.chunks_mut(2 * L).enumerate() {
+        let base = first + g * L;
+        let n = group.len() / 2;
+        let mut q = [[0f32; 2]; L];
+        let mut o = [[0f32; 2]; L];
+        let mut p = [[0f32; 2]; L];
+        let mut s = [f32::NAN; L];
+        // 0: done, output NaN; 1: done, output q (reference view); 2: iterating.
+        let mut state = [0u8; L];
+        for l in 0..n {
+            let idx = base + l;
+            let vi = job.view[idx];
+            let (qx, qy) = (job.inv[2 * idx], job.inv[2 * idx + 1]);
+            q[l] = [qx, qy];
+            if vi < 0 || !qx.is_finite() || !qy.is_finite() {
+                continue;
+            }
+            let off = job.offsets[vi as usize];
+            if off[0] == 0.0 && off[1] == 0.0 {
+                state[l] = 1;
+                continue;
+            }
+            o[l] = off;
+            p[l] = [qx, qy];
+            state[l] = 2;
+        }
+        let mut active = [false; L];
+        for l in 0..L {
+            if state[l] == 2 {
+                s[l] = sample_nan_aware(par, h, w, p[l][0], p[l][1]);
+                active[l] = true;
+            }
+        }
+        for _ in 0..job.iterations {
+            let mut any = false;
+            for l in 0..L {
+                if !active[l] {
+                    continue;
+                }
+                if !s[l].is_finite() {
+                    active[l] = false;
+                    continue;
+                }
+                let (nx, ny) = (q[l][0] - o[l][0] * s[l], q[l][1] - o[l][1] * s[l]);
+                let moved = (nx - p[l][0]).abs() + (ny - p[l][1]).abs();
+                p[l] = [nx, ny];
+                s[l] = sample_nan_aware(par, h, w, nx, ny);
+                if moved < 1e-4 {
+                    active[l] = false; // converged: p no longer moves
+                } else {
+                    any = true;
+                }
+            }
+            if !any {
+                break;
+            }
+        }
+        for (l, out2) in group.chunks_exact_mut(2).enumerate() {
+            let v = match state[l] {
+                1 => q[l],
+                2 => {
+                    let ok = s[l].is_finite() && {
+                        let ex = p[l][0] + o[l][0] * s[l] - q[l][0];
+                        let ey = p[l][1] + o[l][1] * s[l] - q[l][1];
+                        ex * ex + ey * ey <= tol2
+                    };
+                    if ok { p[l] } else { [f32::NAN; 2] }
+                }
+                _ => [f32::NAN; 2],
+            };
+            out2.copy_from_slice(&v);
+        }
+    }
 }
 
 // --------------------------------------------------------------------------------------
@@ -472,11 +542,12 @@ fn fine_pos(positions: &[f32], k: usize, factor: f32) -> Option<(f32, f32)> {
 }
 
 /// The nearest fine pixel index, `floor(v + 0.5)` (round half up), without a libm
-/// call: `v` is finite here, and positions beyond +-2^30 px are off any grid anyway.
+/// call: `v` is finite here, and positions beyond +-2^30 px are off any grid anyway
+/// (those below come out as -2^30; the clamp keeps the subtraction from overflowing).
 #[inline(always)]
 fn nearest(v: f32) -> i64 {
     const SHIFT: f64 = (1u64 << 30) as f64;
-    ((f64::from(v) + 0.5 + SHIFT) as i64) - (1i64 << 30)
+    ((f64::from(v) + 0.5 + SHIFT).max(0.0) as i64) - (1i64 << 30)
 }
 
 /// `e^x` for `x <= 0` (clamped at -87, about 1.6e-38), within 2e-7 relative of `f32::exp`: Cody-Waite
@@ -497,8 +568,11 @@ fn exp_neg(x: f32) -> f32 {
         + f * (1.0
             + f * (0.5
                 + f * (1.0 / 6.0 + f * (1.0 / 24.0 + f * (1.0 / 120.0 + f * (1.0 / 720.0))))));
-    // n is an integer in [-126, 0]: 2^n is a normal float.
-    let scale = f32::from_bits(((n as i32 + 127) as u32) << 23);
+    // n is an integer in [-126, 0]: 2^n is a normal float, whose exponent field n + 127
+    // is read off the bits of n + 127 + 2^23 (an integer below 2^24 is exact there, in
+    // the low mantissa bits; shifting by 23 drops the rest). No float-to-int
+    // conversion, whose saturating semantics would keep a loop over lanes scalar.
+    let scale = f32::from_bits((n + (127.0 + 8_388_608.0)).to_bits() << 23);
     p * scale
 }
 
@@ -506,16 +580,19 @@ fn exp_neg(x: f32) -> f32 {
 /// pixel's samples are summed, hence the result, does not depend on the thread count.
 const BIN_CHUNK: usize = 1 << 16;
 
-/// One chunk's samples sorted into bands (a counting sort): band `b`'s samples are
-/// `items[starts[b]..starts[b + 1]]`, in increasing order.
-struct ChunkBins {
+/// One chunk's samples sorted into bands (a counting sort), as runs of consecutive
+/// sample indices: band `b`'s samples are the runs `runs[starts[b]..starts[b + 1]]`
+/// (`[k0, k1)` each), in increasing order. The samples of one raw row of a view land in
+/// one or two bands, so a run is usually a whole row's worth of samples: the bands read
+/// positions and values in order, and the bins are small.
+struct ChunkRuns {
     starts: Vec<u32>,
-    items: Vec<u32>,
+    runs: Vec<[u32; 2]>,
 }
 
 struct Bins {
     band_rows: usize,
-    chunks: Vec<ChunkBins>,
+    chunks: Vec<ChunkRuns>,
 }
 
 /// Samples sorted into bands of output rows (a sample whose kernel touches two bands
@@ -530,51 +607,61 @@ fn bin_samples(
     fine_h: usize,
     band_rows: usize,
 ) -> Result<Bins> {
-    if m > u32::MAX as usize {
+    if m >= u32::MAX as usize {
         return Err(Error::invalid_argument(
             "positions",
-            format!("{m} samples: at most {} are supported", u32::MAX),
+            format!("{m} samples: fewer than {} are supported", u32::MAX),
         ));
     }
+    // A kernel is at most 2 r + 1 < band_rows rows tall (checked by the caller): it
+    // touches one band or two neighbours.
+    debug_assert!(2 * radius < band_rows);
     let n_bands = fine_h.div_ceil(band_rows);
-    let r = radius as i64;
-    let span = |k: usize| -> Option<(usize, usize)> {
-        if weights.is_some_and(|wt| !positive(wt[k])) {
-            return None;
-        }
-        let (_, fy) = fine_pos(positions, k, factor)?;
-        let yc = nearest(fy);
-        let lo = (yc - r).max(0);
-        let hi = (yc + r).min(fine_h as i64 - 1);
-        (lo <= hi).then(|| (lo as usize / band_rows, hi as usize / band_rows))
-    };
-    let one = |c: usize| -> ChunkBins {
+    let one = |c: usize| -> ChunkRuns {
         let k0 = c * BIN_CHUNK;
         let k1 = (k0 + BIN_CHUNK).min(m);
-        let mut counts = vec![0u32; n_bands + 1];
-        let spans: Vec<Option<(usize, usize)>> = (k0..k1).map(span).collect();
-        for (b0, b1) in spans.iter().flatten() {
-            for b in *b0..=*b1 {
-                counts[b + 1] += 1;
+        let mut bands = BandOf::new(radius, fine_h, band_rows);
+        // Runs in order of their first sample, `(band, [k0, k1))`; `open[b]`: band b's
+        // last run (u32::MAX: none yet), which sample k extends if it ends at k.
+        let mut seq: Vec<(u32, [u32; 2])> = Vec::new();
+        let mut open = vec![u32::MAX; n_bands];
+        for k in k0..k1 {
+            if weights.is_some_and(|wt| !positive(wt[k])) {
+                continue;
             }
-        }
-        for b in 0..n_bands {
-            counts[b + 1] += counts[b];
-        }
-        let mut items = vec![0u32; counts[n_bands] as usize];
-        let mut fill = counts.clone();
-        for (j, sp) in spans.iter().enumerate() {
-            if let Some((b0, b1)) = *sp {
-                for f in fill.iter_mut().take(b1 + 1).skip(b0) {
-                    items[*f as usize] = (k0 + j) as u32;
-                    *f += 1;
+            let Some((_, fy)) = fine_pos(positions, k, factor) else {
+                continue;
+            };
+            let Some((b0, two)) = bands.of(nearest(fy)) else {
+                continue;
+            };
+            let kk = k as u32; // k < m < u32::MAX
+            for b in b0..=b0 + u32::from(two) {
+                let last = open[b as usize] as usize;
+                match seq.get_mut(last) {
+                    Some((_, run)) if run[1] == kk => run[1] = kk + 1,
+                    _ => {
+                        open[b as usize] = seq.len() as u32;
+                        seq.push((b, [kk, kk + 1]));
+                    }
                 }
             }
         }
-        ChunkBins {
-            starts: counts,
-            items,
+        // Counting sort of the runs by band, stable: each band's runs stay in order.
+        let mut starts = vec![0u32; n_bands + 1];
+        for &(b, _) in &seq {
+            starts[b as usize + 1] += 1;
         }
+        for b in 0..n_bands {
+            starts[b + 1] += starts[b];
+        }
+        let mut runs = vec![[0u32; 2]; seq.len()];
+        let mut next = starts.clone();
+        for &(b, run) in &seq {
+            runs[next[b as usize] as usize] = run;
+            next[b as usize] += 1;
+        }
+        ChunkRuns { starts, runs }
     };
     let n_chunks = m.div_ceil(BIN_CHUNK);
     let chunks = if n_chunks <= 1 {
@@ -585,54 +672,196 @@ fn bin_samples(
     Ok(Bins { band_rows, chunks })
 }
 
-/// Accumulates the samples of one band into its rows.
-#[allow(clippy::too_many_arguments)]
-fn splat_band(
-    band: usize,
-    bins: &Bins,
-    positions: &[f32],
-    values: &[f32],
-    weights: &[f32],
-    channels: usize,
-    fine_w: usize,
-    fine_h: usize,
-    params: &SplatParams,
-    sum: &mut [f32],
-    wsum: &mut [f32],
-) {
-    if channels < 4 {
-        splat_band_lanes::<4>(
-            band, bins, positions, values, weights, channels, fine_w, fine_h, params, sum, wsum,
-        );
-    } else {
-        splat_band_lanes::<8>(
-            band, bins, positions, values, weights, channels, fine_w, fine_h, params, sum, wsum,
-        );
+/// The bands that the kernel of a sample whose nearest fine row is `yc` touches:
+/// `(b, two)`, band `b` and, if `two`, band `b + 1`; `None` if no row of the grid. The
+/// last answer's range of `yc` is kept: samples in scan order mostly stay in it, and
+/// then cost no division.
+struct BandOf {
+    r: i64,
+    last_row: i64,
+    band_rows: i64,
+    /// `yc` in `lo..=hi` gives `answer`.
+    lo: i64,
+    hi: i64,
+    answer: (u32, bool),
+}
+
+impl BandOf {
+    fn new(radius: usize, fine_h: usize, band_rows: usize) -> Self {
+        Self {
+            r: radius as i64,
+            last_row: fine_h as i64 - 1,
+            band_rows: band_rows as i64,
+            lo: 1,
+            hi: 0,
+            answer: (0, false),
+        }
+    }
+
+    #[inline(always)]
+    fn of(&mut self, yc: i64) -> Option<(u32, bool)> {
+        if yc >= self.lo && yc <= self.hi {
+            return Some(self.answer);
+        }
+        let (r, br) = (self.r, self.band_rows);
+        let lo = (yc - r).max(0);
+        let hi = (yc + r).min(self.last_row);
+        if lo > hi {
+            return None;
+        }
+        let (b0, b1) = (lo / br, hi / br);
+        self.answer = (b0 as u32, b1 > b0);
+        // The same bands for yc' with b0 br <= yc' - r, yc' + r < (b1 + 1) br (away
+        // from the grid's edges, where the clamps above act) and, for one band,
+        // yc' + r < (b0 + 1) br; for two, yc' + r >= b1 br and yc' - r < b1 br.
+        let (mut l, mut h) = (b0 * br + r, (b1 + 1) * br - 1 - r);
+        if b1 > b0 {
+            l = l.max(b1 * br - r);
+            h = h.min(b1 * br - 1 + r);
+        }
+        self.lo = l.max(r);
+        self.hi = h.min(self.last_row - r);
+        Some(self.answer)
     }
 }
 
-/// [`splat_band`] with each pixel's sums and weight side by side in `L > channels`
-/// lanes (`[v_0 .. v_{C-1}, 1, 0 ..]` times the tap weight): one vector add per tap.
-/// The band is then split into `sum` and `wsum`. The additions are those of one
-/// accumulator per output value, in the same order: the same result, bit for bit.
-#[allow(clippy::too_many_arguments)]
-#[inline(always)]
-fn splat_band_lanes<const L: usize>(
-    band: usize,
-    bins: &Bins,
-    positions: &[f32],
-    values: &[f32],
-    weights: &[f32],
-    channels: usize,
+/// What one accumulation pass of [`shift_and_add`] reads.
+struct SplatJob<'a> {
+    bins: &'a Bins,
+    positions: &'a [f32],
+    values: &'a [f32],
+    weights: Option<&'a [f32]>,
     fine_w: usize,
     fine_h: usize,
-    params: &SplatParams,
-    sum: &mut [f32],
-    wsum: &mut [f32],
+    params: &'a SplatParams,
+    /// The previous pass's estimate `(fine_h, fine_w, EST_LANES)` (`sum / wsum`, NaN
+    /// where `wsum <= 1e-6`): samples are reweighted against it. `None`: the first pass.
+    est: Option<&'a [f32]>,
+}
+
+/// Where a pass writes one band's rows.
+enum BandOut<'o> {
+    /// The sums and the weights (the last pass of [`shift_and_add`]).
+    Sums(&'o mut [f32], &'o mut [f32]),
+    /// The fused image, the weights and where the image has data (the last pass of
+    /// [`shift_and_add_mean`], with its `min_weight`).
+    Mean(&'o mut [f32], &'o mut [f32], &'o mut [bool], f32),
+    /// The estimate `sum / wsum` (NaN where `wsum <= 1e-6`), for the next pass.
+    Estimate(&'o mut [f32]),
+}
+
+impl BandOut<'_> {
+    fn rows(&self, fine_w: usize) -> usize {
+        match self {
+            BandOut::Sums(_, ws) | BandOut::Mean(_, ws, _, _) => ws.len() / fine_w,
+            BandOut::Estimate(e) => e.len() / (fine_w * EST_LANES),
+        }
+    }
+}
+
+/// What a pass writes, all bands.
+enum PassOut<'o> {
+    Sums(&'o mut [f32], &'o mut [f32]),
+    Mean(&'o mut [f32], &'o mut [f32], &'o mut [bool], f32),
+    Estimate(&'o mut [f32]),
+}
+
+impl<'o> PassOut<'o> {
+    /// One [`BandOut`] per band of `band_rows` rows.
+    fn bands(self, fine_w: usize, c: usize, band_rows: usize) -> Vec<BandOut<'o>> {
+        let px = band_rows * fine_w;
+        match self {
+            PassOut::Sums(s, ws) => s
+                .chunks_mut(px * c)
+                .zip(ws.chunks_mut(px))
+                .map(|(s, ws)| BandOut::Sums(s, ws))
+                .collect(),
+            PassOut::Mean(m, ws, have, min_weight) => m
+                .chunks_mut(px * c)
+                .zip(ws.chunks_mut(px))
+                .zip(have.chunks_mut(px))
+                .map(|((m, ws), have)| BandOut::Mean(m, ws, have, min_weight))
+                .collect(),
+            PassOut::Estimate(e) => e
+                .chunks_mut(px * EST_LANES)
+                .map(BandOut::Estimate)
+                .collect(),
+        }
+    }
+}
+
+/// Sample `k`'s weight in a pass: its base weight `w0` (> 0), reweighted by its
+/// residual against the previous pass's estimate (Farsiu et al. 2003's robust
+/// shift-and-add): `w0 min(1, huber / e)`, 0 above `reject`; `w0` where there is no
+/// estimate yet.
+#[inline(always)]
+fn robust_weight<const C: usize>(
+    job: &SplatJob<'_>,
+    est: &[f32],
+    v: &[f32],
+    fx: f32,
+    fy: f32,
+    w0: f32,
+) -> f32 {
+    let p = job.params;
+    let mut buf = [0f32; EST_LANES];
+    if !estimate_at(est, job.fine_h, job.fine_w, fx, fy, &mut buf) {
+        return w0; // no estimate there yet: keep the sample
+    }
+    // Summed as `Iterator::sum` does (from -0, in order).
+    let mut e = -0.0f32;
+    for (a, b) in v.iter().zip(&buf[..C]) {
+        e += (a - b).abs();
+    }
+    let e = e / C as f32;
+    // Selects rather than branches: whether a sample is an outlier is as good as
+    // random, and a mispredicted branch costs more than the division.
+    let keep = e <= p.reject; // false for NaN
+    let damped = w0 * p.huber / e;
+    let w = if e > p.huber { damped } else { w0 };
+    if keep { w } else { 0.0 }
+}
+
+/// One band of one pass: its samples accumulated in `acc` (each pixel's sums and
+/// weight side by side in `L > channels` lanes, `[v_0 .. v_{C-1}, 1, 0 ..]` times the
+/// tap weight: one vector add per tap), then written to `out`. The additions are those
+/// of one accumulator per output value, in increasing sample order: the result does not
+/// depend on the bands.
+struct SplatBand<'a, 'o, const C: usize, const L: usize> {
+    job: &'a SplatJob<'a>,
+    band: usize,
+    acc: &'a mut Vec<[f32; L]>,
+    out: BandOut<'o>,
+}
+
+impl<const C: usize, const L: usize> simd::Avx2Kernel for SplatBand<'_, '_, C, L> {
+    type Output = ();
+    #[inline(always)]
+    fn run(self) {
+        splat_band::<C, L>(self.job, self.band, self.acc, self.out);
+    }
+}
+
+/// Pixels of margin on each side of a row of a band's accumulator: taps just outside
+/// the grid land there (and are dropped), so the 3 x 3 kernel needs no test per tap.
+const ACC_PAD: usize = 2;
+
+#[inline(always)]
+fn splat_band<const C: usize, const L: usize>(
+    job: &SplatJob<'_>,
+    band: usize,
+    acc: &mut Vec<[f32; L]>,
+    out: BandOut<'_>,
 ) {
-    let row0 = band * bins.band_rows;
-    let nrows = wsum.len() / fine_w;
-    let mut acc = vec![[0f32; L]; nrows * fine_w];
+    let (fine_w, fine_h) = (job.fine_w, job.fine_h);
+    let params = job.params;
+    let row0 = band * job.bins.band_rows;
+    let nrows = out.rows(fine_w);
+    // Rows of `stride` (even) pixels, pixel x at `x + ACC_PAD`.
+    let stride = (fine_w + 2 * ACC_PAD).next_multiple_of(2);
+    acc.clear();
+    acc.resize(nrows * stride, [0f32; L]);
+    let acc = &mut acc[..];
     let r = if params.sigma > 0.0 {
         params.radius as i64
     } else {
@@ -643,90 +872,436 @@ fn splat_band_lanes<const L: usize>(
     } else {
         0.0
     };
-    let band_items = bins.chunks.iter().flat_map(|c| {
-        let (a, b) = (c.starts[band] as usize, c.starts[band + 1] as usize);
-        &c.items[a..b]
-    });
-    for &k in band_items {
-        let k = k as usize;
-        let wk = weights[k];
-        if !positive(wk) {
-            continue;
-        }
-        let Some((fx, fy)) = fine_pos(positions, k, params.factor) else {
-            continue;
-        };
-        let xc = nearest(fx);
-        let yc = nearest(fy);
-        let v = &values[k * channels..(k + 1) * channels];
-        if v.iter().any(|c| !c.is_finite()) {
-            continue;
-        }
-        let mut vv = [0f32; L];
-        vv[..channels].copy_from_slice(v);
-        vv[channels] = 1.0;
-        // The Gaussian is separable: (2r + 1) exponentials per axis, not per tap.
-        let mut gx = [1f32; 2 * MAX_RADIUS + 1];
-        let mut gys = [1f32; 2 * MAX_RADIUS + 1];
-        let (dx0, dy0) = ((xc - r) as f32 - fx, (yc - r) as f32 - fy);
-        if r == 1 {
-            // The usual 3 x 3 kernel: both axes' six exponentials in one vector.
-            let mut e = [0f32; 8];
-            for t in 0..3 {
-                let (dx, dy) = (dx0 + t as f32, dy0 + t as f32);
-                e[t] = -dx * dx * inv2s2;
-                e[4 + t] = -dy * dy * inv2s2;
-            }
-            for v in &mut e {
-                *v = exp_neg(*v);
-            }
-            gx[..3].copy_from_slice(&e[..3]);
-            gys[..3].copy_from_slice(&e[4..7]);
-        } else if r > 0 {
-            for (t, (g, gy)) in gx
-                .iter_mut()
-                .zip(gys.iter_mut())
-                .enumerate()
-                .take(2 * r as usize + 1)
-            {
-                let (dx, dy) = (dx0 + t as f32, dy0 + t as f32);
-                *g = exp_neg(-dx * dx * inv2s2);
-                *gy = exp_neg(-dy * dy * inv2s2);
-            }
-        }
-        for (ty, yy) in ((yc - r)..=(yc + r)).enumerate() {
-            if yy < row0 as i64 || yy >= (row0 + nrows) as i64 || yy >= fine_h as i64 {
+    let (row_lo, row_hi) = (row0 as i64, (row0 + nrows).min(fine_h) as i64);
+    for chunk in &job.bins.chunks {
+        let (a, b) = (chunk.starts[band] as usize, chunk.starts[band + 1] as usize);
+        for &[k0, k1] in &chunk.runs[a..b] {
+            if r == 1 {
+                // The usual 3 x 3 kernel, in blocks of consecutive samples.
+                let mut k = k0 as usize;
+                while k < k1 as usize {
+                    let n = (k1 as usize - k).min(SPLAT_BLOCK);
+                    splat3_block::<C, L>(job, k, n, acc, stride, row_lo, row_hi, inv2s2);
+                    k += n;
+                }
                 continue;
             }
-            let wy = wk * gys[ty];
-            let ly = (yy as usize - row0) * fine_w;
-            for (t, xx) in ((xc - r)..=(xc + r)).enumerate() {
-                if xx < 0 || xx >= fine_w as i64 {
+            for k in k0 as usize..k1 as usize {
+                let w0 = job.weights.map_or(1.0, |wt| wt[k]);
+                if !positive(w0) {
                     continue;
                 }
-                let wt = wy * gx[t];
-                let a = &mut acc[ly + xx as usize];
-                for (o, &b) in a.iter_mut().zip(&vv) {
-                    *o += wt * b;
+                let Some((fx, fy)) = fine_pos(job.positions, k, params.factor) else {
+                    continue;
+                };
+                let Some(v) = job.values.get(k * C..(k + 1) * C) else {
+                    continue;
+                };
+                let wk = match job.est {
+                    Some(est) => robust_weight::<C>(job, est, v, fx, fy, w0),
+                    None => w0,
+                };
+                if !positive(wk) || v.iter().any(|c| !c.is_finite()) {
+                    continue;
+                }
+                let mut vv = [0f32; L];
+                vv[..C].copy_from_slice(v);
+                vv[C] = 1.0;
+                let xc = nearest(fx);
+                let yc = nearest(fy);
+                let (dx0, dy0) = ((xc - r) as f32 - fx, (yc - r) as f32 - fy);
+                let mut gx = [1f32; 2 * MAX_RADIUS + 1];
+                let mut gys = [1f32; 2 * MAX_RADIUS + 1];
+                if r > 0 {
+                    for (t, (g, gy)) in gx
+                        .iter_mut()
+                        .zip(gys.iter_mut())
+                        .enumerate()
+                        .take(2 * r as usize + 1)
+                    {
+                        let (dx, dy) = (dx0 + t as f32, dy0 + t as f32);
+                        *g = exp_neg(-dx * dx * inv2s2);
+                        *gy = exp_neg(-dy * dy * inv2s2);
+                    }
+                }
+                for (ty, yy) in ((yc - r)..=(yc + r)).enumerate() {
+                    if yy < row_lo || yy >= row_hi {
+                        continue;
+                    }
+                    let wy = wk * gys[ty];
+                    let ly = (yy - row_lo) as usize * stride + ACC_PAD;
+                    for (t, xx) in ((xc - r)..=(xc + r)).enumerate() {
+                        if xx < 0 || xx >= fine_w as i64 {
+                            continue;
+                        }
+                        let wt = wy * gx[t];
+                        for (o, &b) in acc[ly + xx as usize].iter_mut().zip(&vv) {
+                            *o += wt * b;
+                        }
+                    }
                 }
             }
         }
     }
-    for ((a, ws), s) in acc
-        .iter()
-        .zip(wsum.iter_mut())
-        .zip(sum.chunks_exact_mut(channels))
-    {
-        *ws = a[channels];
-        s.copy_from_slice(&a[..channels]);
+    let rows = acc
+        .chunks_exact(stride)
+        .map(|row| &row[ACC_PAD..ACC_PAD + fine_w]);
+    match out {
+        BandOut::Sums(sum, wsum) => {
+            for ((row, ws), s) in rows
+                .zip(wsum.chunks_exact_mut(fine_w))
+                .zip(sum.chunks_exact_mut(fine_w * C))
+            {
+                for ((a, ws), s) in row.iter().zip(ws).zip(s.chunks_exact_mut(C)) {
+                    *ws = a[C];
+                    s.copy_from_slice(&a[..C]);
+                }
+            }
+        }
+        BandOut::Mean(mean, wsum, have, min_weight) => {
+            for (((row, ws), m), hv) in rows
+                .zip(wsum.chunks_exact_mut(fine_w))
+                .zip(mean.chunks_exact_mut(fine_w * C))
+                .zip(have.chunks_exact_mut(fine_w))
+            {
+                for (((a, ws), m), hv) in row.iter().zip(ws).zip(m.chunks_exact_mut(C)).zip(hv) {
+                    *ws = a[C];
+                    let mut ok = a[C] >= min_weight;
+                    for (o, &v) in m.iter_mut().zip(&a[..C]) {
+                        *o = v / a[C];
+                        ok &= o.is_finite();
+                    }
+                    if !ok {
+                        m.fill(0.0);
+                    }
+                    *hv = ok;
+                }
+            }
+        }
+        BandOut::Estimate(est) => {
+            for (row, e) in rows.zip(est.chunks_exact_mut(fine_w * EST_LANES)) {
+                for (a, e) in row.iter().zip(e.chunks_exact_mut(EST_LANES)) {
+                    let ws = a[C];
+                    for (o, &v) in e.iter_mut().zip(&a[..C]) {
+                        *o = if ws > 1e-6 { v / ws } else { f32::NAN };
+                    }
+                }
+            }
+        }
     }
 }
 
+/// Samples per block of [`splat3_block`].
+const SPLAT_BLOCK: usize = 64;
+
+/// [`nearest`] as a float: `floor(v + 0.5)` computed exactly as `nearest` does
+/// (`(v + 0.5) + 2^30`, truncated, minus `2^30`), with float operations only, which
+/// vectorise (a saturating float-to-int conversion per lane does not).
+#[inline(always)]
+fn nearest_f64(v: f32) -> f64 {
+    const SHIFT: f64 = (1u64 << 30) as f64;
+    // Truncating a non-negative number floors it; below -2^30 (far off any grid) the
+    // two differ, which changes nothing.
+    ((f64::from(v) + 0.5 + SHIFT).floor()) - SHIFT
+}
+
+/// Samples `k0..k0 + n` (`n <= SPLAT_BLOCK`, one run of the band) with the 3 x 3
+/// kernel: first, for the whole block, their fine positions, nearest pixels and
+/// Gaussian taps (straight-line arithmetic over arrays, which vectorises), then each
+/// sample's taps added by [`splat3`]. The arithmetic per sample is that of the general
+/// kernel in [`splat_band`].
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn splat3_block<const C: usize, const L: usize>(
+    job: &SplatJob<'_>,
+    k0: usize,
+    n: usize,
+    acc: &mut [[f32; L]],
+    stride: usize,
+    row_lo: i64,
+    row_hi: i64,
+    inv2s2: f32,
+) {
+    const B: usize = SPLAT_BLOCK;
+    // 1, the weight lane's value, opaque to the optimiser: knowing that lane's products
+    // are `wt * 1`, it would split each pixel's vector product into scalar ones and
+    // reassemble the vector lane by lane.
+    let one = std::hint::black_box(1.0f32);
+    let factor = job.params.factor;
+    let Some(pos) = job.positions.get(2 * k0..2 * (k0 + n)) else {
+        return;
+    };
+    let mut fx = [0f32; B];
+    let mut fy = [0f32; B];
+    for (i, p) in pos.chunks_exact(2).enumerate() {
+        fx[i] = (p[0] + 0.5) * factor - 0.5;
+        fy[i] = (p[1] + 0.5) * factor - 0.5;
+    }
+    let mut cx = [0f64; B];
+    let mut cy = [0f64; B];
+    // Taps along x (t = 0..3) and y (t = 4..7), tap by tap over the block's samples
+    // (rounded up to a multiple of 8 for whole vectors; the rest is not read).
+    let nv = n.next_multiple_of(8).min(B);
+    let mut g = [[0f32; B]; 8];
+    for i in 0..nv {
+        cx[i] = nearest_f64(fx[i]);
+        cy[i] = nearest_f64(fy[i]);
+        let dx0 = (cx[i] - 1.0) as f32 - fx[i];
+        let dy0 = (cy[i] - 1.0) as f32 - fy[i];
+        for t in 0..3 {
+            let (dx, dy) = (dx0 + t as f32, dy0 + t as f32);
+            g[t][i] = -dx * dx * inv2s2;
+            g[4 + t][i] = -dy * dy * inv2s2;
+        }
+    }
+    for (t, row) in g.iter_mut().enumerate() {
+        if t % 4 == 3 {
+            continue; // unused
+        }
+        for v in &mut row[..nv] {
+            *v = exp_neg(*v);
+        }
+    }
+    let mut w0 = [1f32; B];
+    if let Some(wt) = job.weights.and_then(|wt| wt.get(k0..k0 + n)) {
+        w0[..n].copy_from_slice(wt);
+    }
+    let mut wk = w0;
+    if let Some(est) = job.est {
+        robust_weights::<C>(job, est, k0, n, &fx, &fy, &w0, &mut wk);
+    }
+    for i in 0..n {
+        let k = k0 + i;
+        if !(positive(w0[i]) && fx[i].is_finite() && fy[i].is_finite()) {
+            continue;
+        }
+        let Some(v) = job.values.get(k * C..(k + 1) * C) else {
+            continue;
+        };
+        let wk = wk[i];
+        if !positive(wk) || v.iter().any(|c| !c.is_finite()) {
+            continue;
+        }
+        let mut vv = [0f32; L];
+        vv[..C].copy_from_slice(v);
+        vv[C] = one;
+        // Integers (exact in f64); beyond +-2^40, far off any grid, clamped so that
+        // the index arithmetic cannot overflow.
+        const FAR: f64 = (1u64 << 40) as f64;
+        let (xc, yc) = (cx[i].clamp(-FAR, FAR) as i64, cy[i].clamp(-FAR, FAR) as i64);
+        let e = [
+            g[0][i], g[1][i], g[2][i], 0.0, g[4][i], g[5][i], g[6][i], 0.0,
+        ];
+        splat3::<L>(acc, stride, row_lo, row_hi, xc, yc, wk, &e, &vv);
+    }
+}
+
+/// [`robust_weight`] for the samples `k0..k0 + n` of a block (`wk[i]` for sample
+/// `k0 + i`, from its fine position `(fx[i], fy[i])` and base weight `w0[i]`; lanes
+/// whose sample is unusable get some value, not read): the same arithmetic per sample,
+/// as loops over the block that vectorise, around a loop that fetches the estimate's
+/// corners.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn robust_weights<const C: usize>(
+    job: &SplatJob<'_>,
+    est: &[f32],
+    k0: usize,
+    n: usize,
+    fx: &[f32; SPLAT_BLOCK],
+    fy: &[f32; SPLAT_BLOCK],
+    w0: &[f32; SPLAT_BLOCK],
+    wk: &mut [f32; SPLAT_BLOCK],
+) {
+    const B: usize = SPLAT_BLOCK;
+    let (h, w) = (job.fine_h, job.fine_w);
+    let (huber, reject) = (job.params.huber, job.params.reject);
+    let (xmax, ymax) = ((w - 1) as f32, (h - 1) as f32);
+    // Bilinear weights of the corners (y0, x0), (y0, x1), (y1, x0), (y1, x1), as
+    // `estimate_at` forms them, and where the corners are.
+    let mut b = [[0f32; B]; 4];
+    let mut at = [[0usize; 4]; B];
+    for i in 0..B {
+        let xc = fx[i].clamp(0.0, xmax);
+        let yc = fy[i].clamp(0.0, ymax);
+        let x0 = (xc as usize).min(w - 1);
+        let y0 = (yc as usize).min(h - 1);
+        let x1 = (x0 + 1).min(w - 1);
+        let y1 = (y0 + 1).min(h - 1);
+        let (tx, ty) = (xc - x0 as f32, yc - y0 as f32);
+        b[0][i] = (1.0 - tx) * (1.0 - ty);
+        b[1][i] = tx * (1.0 - ty);
+        b[2][i] = (1.0 - tx) * ty;
+        b[3][i] = tx * ty;
+        at[i] = [
+            (y0 * w + x0) * EST_LANES,
+            (y0 * w + x1) * EST_LANES,
+            (y1 * w + x0) * EST_LANES,
+            (y1 * w + x1) * EST_LANES,
+        ];
+    }
+    // The corners' estimates and the samples' values, channel by channel.
+    let mut e = [[[0f32; B]; C]; 4];
+    let mut v = [[0f32; B]; C];
+    for i in 0..n {
+        for (corner, &p) in at[i].iter().enumerate() {
+            if let Some(px) = est.get(p..p + C) {
+                for (ch, &x) in px.iter().enumerate() {
+                    e[corner][ch][i] = x;
+                }
+            }
+        }
+        if let Some(px) = job.values.get((k0 + i) * C..(k0 + i + 1) * C) {
+            for (ch, &x) in px.iter().enumerate() {
+                v[ch][i] = x;
+            }
+        }
+    }
+    for i in 0..B {
+        // The estimate: corners without one add exact zeros (see `estimate_at`).
+        let mut total = 0.0f32;
+        let mut out = [0f32; C];
+        for corner in 0..4 {
+            let bc = b[corner][i];
+            let used = !e[corner][0][i].is_nan() && bc > 0.0;
+            total += if used { bc } else { 0.0 };
+            for ch in 0..C {
+                out[ch] += if used { bc * e[corner][ch][i] } else { 0.0 };
+            }
+        }
+        let mut err = -0.0f32;
+        for ch in 0..C {
+            err += (v[ch][i] - out[ch] / total).abs();
+        }
+        let err = err / C as f32;
+        let keep = err <= reject; // false for NaN
+        let damped = w0[i] * huber / err;
+        let weight = if err > huber { damped } else { w0[i] };
+        let weight = if keep { weight } else { 0.0 };
+        // No estimate there yet: the sample keeps its weight.
+        wk[i] = if total < 0.25 { w0[i] } else { weight };
+    }
+}
+
+/// One sample's 3 x 3 taps (`e[0..3]` along x, `e[4..7]` along y, times `wk`) added to
+/// the rows of `acc` (rows of `stride` pixels, pixel x at `x + ACC_PAD`) that lie in
+/// `row_lo..row_hi`. A row's three taps are added as two pairs of pixels aligned on even
+/// pixel indices (the fourth pixel with weight 0, which adds nothing: a sum that starts
+/// at +0 never becomes -0): consecutive samples, about two fine pixels apart, then
+/// read exactly the pair the previous one wrote, which the CPU forwards from its store.
+/// Each value gets `(wk g_y) g_x` times the sample's lane, as in the general kernel.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn splat3<const L: usize>(
+    acc: &mut [[f32; L]],
+    stride: usize,
+    row_lo: i64,
+    row_hi: i64,
+    xc: i64,
+    yc: i64,
+    wk: f32,
+    e: &[f32; 8],
+    vv: &[f32; L],
+) {
+    // Padded index of the first tap, x = xc - 1.
+    let xp = xc - 1 + ACC_PAD as i64;
+    // (An infinite weight would turn the fourth pixel's zero weight into NaN.)
+    if L == 4 && xp >= 0 && xp + 3 < stride as i64 && wk.is_finite() {
+        let odd = (xp & 1) as usize;
+        let base = xp as usize - odd;
+        // [e0, e1, e2, 0] or [0, e0, e1, e2], by index rather than by a branch (the
+        // parity of jittered samples is unpredictable).
+        let ext = [0.0, e[0], e[1], e[2], 0.0];
+        let g4: [f32; 4] = std::array::from_fn(|t| ext[t + 1 - odd]);
+        let g16: [f32; 16] = std::array::from_fn(|i| g4[i / 4]);
+        let v16: [f32; 16] = std::array::from_fn(|i| vv[i % L]);
+        let flat = acc.as_flattened_mut();
+        for ty in 0..3 {
+            let yy = yc - 1 + ty as i64;
+            if yy < row_lo || yy >= row_hi {
+                continue;
+            }
+            let wy = wk * e[4 + ty];
+            let at = ((yy - row_lo) as usize * stride + base) * L;
+            let Some(dst) = flat.get_mut(at..at + 16) else {
+                continue;
+            };
+            for ((o, &g), &b) in dst.iter_mut().zip(&g16).zip(&v16) {
+                *o += (wy * g) * b;
+            }
+        }
+        return;
+    }
+    for ty in 0..3 {
+        let yy = yc - 1 + ty as i64;
+        if yy < row_lo || yy >= row_hi {
+            continue;
+        }
+        let wy = wk * e[4 + ty];
+        let ly = (yy - row_lo) as usize * stride;
+        for (xx, &gx) in (xp..xp + 3).zip(&e[..3]) {
+            if xx < 0 || xx >= stride as i64 {
+                continue;
+            }
+            let wt = wy * gx;
+            for (o, &b) in acc[ly + xx as usize].iter_mut().zip(vv) {
+                *o += wt * b;
+            }
+        }
+    }
+}
+
+/// One accumulation pass over all bands, into `out`.
+fn splat_pass<const C: usize, const L: usize>(
+    job: &SplatJob<'_>,
+    out: PassOut<'_>,
+    threads: usize,
+) -> Result<()> {
+    let fine_w = job.fine_w;
+    let go = |acc: &mut Vec<[f32; L]>, (band, out): (usize, BandOut<'_>)| {
+        simd::run_avx2_or_portable(
+            true,
+            SplatBand::<C, L> {
+                job,
+                band,
+                acc,
+                out,
+            },
+        );
+    };
+    let bands = out.bands(fine_w, C, job.bins.band_rows);
+    if parallel::run_serially(job.fine_h * fine_w * (C + 1) * 4, threads) {
+        let mut acc = Vec::new();
+        bands.into_iter().enumerate().for_each(|b| go(&mut acc, b));
+        Ok(())
+    } else {
+        parallel::install(|| {
+            bands
+                .into_par_iter()
+                .enumerate()
+                .for_each_init(Vec::new, go);
+        })
+    }
+}
+
+/// Floats per pixel of an estimate image: `C <= 4` values, then zeros.
+const EST_LANES: usize = 4;
+
 /// The fused estimate at fine `(x, y)`: bilinear (clamped to the grid) in `est`
-/// (`sum / wsum` per pixel, NaN where `wsum <= 1e-6`) over the corners that have an
-/// estimate, channel by channel into `out`; false if none.
-#[inline]
-fn estimate_at(est: &[f32], h: usize, w: usize, c: usize, x: f32, y: f32, out: &mut [f32]) -> bool {
+/// (`(h, w, EST_LANES)`: `sum / wsum` per pixel, NaN where `wsum <= 1e-6`) over the
+/// corners that have an estimate, channel by channel into `out`; false if none.
+///
+/// The corners without an estimate add exact zeros rather than being skipped, which is
+/// the same (a sum that starts at +0 never becomes -0) without a branch per corner.
+#[inline(always)]
+fn estimate_at(
+    est: &[f32],
+    h: usize,
+    w: usize,
+    x: f32,
+    y: f32,
+    out: &mut [f32; EST_LANES],
+) -> bool {
     let xc = x.clamp(0.0, (w - 1) as f32);
     let yc = y.clamp(0.0, (h - 1) as f32);
     let x0 = (xc as usize).min(w - 1);
@@ -735,24 +1310,25 @@ fn estimate_at(est: &[f32], h: usize, w: usize, c: usize, x: f32, y: f32, out: &
     let y1 = (y0 + 1).min(h - 1);
     let (tx, ty) = (xc - x0 as f32, yc - y0 as f32);
     let mut total = 0.0f32;
-    out.iter_mut().take(c).for_each(|o| *o = 0.0);
+    *out = [0.0; EST_LANES];
     for (yy, wy) in [(y0, 1.0 - ty), (y1, ty)] {
         for (xx, wx) in [(x0, 1.0 - tx), (x1, tx)] {
-            let p = yy * w + xx;
-            let e = &est[p * c..(p + 1) * c];
+            let p = (yy * w + xx) * EST_LANES;
+            let Some(e) = est.get(p..p + EST_LANES) else {
+                continue;
+            };
             let b = wx * wy;
-            if !e[0].is_nan() && b > 0.0 {
-                total += b;
-                for (o, &v) in out.iter_mut().zip(e) {
-                    *o += b * v;
-                }
+            let used = !e[0].is_nan() && b > 0.0;
+            total += if used { b } else { 0.0 };
+            for (o, &v) in out.iter_mut().zip(e) {
+                *o += if used { b * v } else { 0.0 };
             }
         }
     }
     if total < 0.25 {
         return false;
     }
-    out.iter_mut().take(c).for_each(|o| *o /= total);
+    out.iter_mut().for_each(|o| *o /= total);
     true
 }
 
@@ -786,6 +1362,98 @@ pub fn shift_and_add(
     sum: &mut [f32],
     wsum: &mut [f32],
 ) -> Result<()> {
+    check_len(
+        "sum",
+        sum.len(),
+        mul("sum", &[fine_h, fine_w, channels])?,
+        "(H, W, C)",
+    )?;
+    check_len(
+        "wsum",
+        wsum.len(),
+        mul("wsum", &[fine_h, fine_w])?,
+        "(H, W)",
+    )?;
+    splat_all(
+        positions,
+        values,
+        weights,
+        channels,
+        fine_h,
+        fine_w,
+        params,
+        PassOut::Sums(sum, wsum),
+    )
+}
+
+/// [`shift_and_add`] that writes the fused image instead of the sums: `mean`
+/// `(fine_h, fine_w, C)` gets `sum / wsum` where `wsum >= min_weight` and that is finite
+/// in every channel, else 0; `have` `(fine_h, fine_w)` is true there (false: the pixels
+/// to fill); `wsum` as in [`shift_and_add`]. The values are those `sum / wsum` gives
+/// with [`shift_and_add`]'s sums, without a pass over them.
+///
+/// # Errors
+/// As [`shift_and_add`]; `min_weight` if it is NaN.
+#[allow(clippy::too_many_arguments)]
+pub fn shift_and_add_mean(
+    positions: &[f32],
+    values: &[f32],
+    weights: Option<&[f32]>,
+    channels: usize,
+    fine_h: usize,
+    fine_w: usize,
+    params: &SplatParams,
+    min_weight: f32,
+    mean: &mut [f32],
+    wsum: &mut [f32],
+    have: &mut [bool],
+) -> Result<()> {
+    check_len(
+        "mean",
+        mean.len(),
+        mul("mean", &[fine_h, fine_w, channels])?,
+        "(H, W, C)",
+    )?;
+    check_len(
+        "wsum",
+        wsum.len(),
+        mul("wsum", &[fine_h, fine_w])?,
+        "(H, W)",
+    )?;
+    check_len(
+        "have",
+        have.len(),
+        mul("have", &[fine_h, fine_w])?,
+        "(H, W)",
+    )?;
+    if min_weight.is_nan() {
+        return Err(Error::invalid_argument("min_weight", "is NaN"));
+    }
+    splat_all(
+        positions,
+        values,
+        weights,
+        channels,
+        fine_h,
+        fine_w,
+        params,
+        PassOut::Mean(mean, wsum, have, min_weight),
+    )
+}
+
+/// The passes of [`shift_and_add`] (sizes of the output checked by the caller); the
+/// last one writes `last`.
+#[allow(clippy::too_many_arguments)]
+fn splat_all(
+    positions: &[f32],
+    values: &[f32],
+    weights: Option<&[f32]>,
+    channels: usize,
+    fine_h: usize,
+    fine_w: usize,
+    params: &SplatParams,
+    last: PassOut<'_>,
+) -> Result<()> {
     if !(1..=MAX_CHANNELS).contains(&channels) {
         return Err(Error::invalid_argument(
             "values",
@@ -811,18 +1479,6 @@ pub fn shift_and_add(
     if fine_h == 0 || fine_w == 0 {
         return Err(Error::invalid_argument("shape", "the fine grid is empty"));
     }
-    check_len(
-        "sum",
-        sum.len(),
-        mul("sum", &[fine_h, fine_w, channels])?,
-        "(H, W, C)",
-    )?;
-    check_len(
-        "wsum",
-        wsum.len(),
-        mul("wsum", &[fine_h, fine_w])?,
-        "(H, W)",
-    )?;
     if !(params.factor > 0.0 && params.factor <= MAX_FACTOR) {
         return Err(Error::invalid_argument(
             "factor",
@@ -861,96 +1517,110 @@ pub fn shift_and_add(
         fine_h,
         band_rows,
     )?;
-    let mut wk: Vec<f32> = match weights {
-        Some(wt) => wt.to_vec(),
-        None => vec![1.0; m],
-    };
-    let row_len = fine_w * channels;
-    let accumulate = |wk: &[f32], sum: &mut [f32], wsum: &mut [f32]| -> Result<()> {
-        let go = |(b, (s, ws)): (usize, (&mut [f32], &mut [f32]))| {
-            splat_band(
-                b, &bins, positions, values, wk, channels, fine_w, fine_h, params, s, ws,
-            );
-        };
-        let chunks = sum
-            .chunks_mut(band_rows * row_len)
-            .zip(wsum.chunks_mut(band_rows * fine_w));
-        if parallel::run_serially(fine_h * fine_w * (channels + 1) * 4, threads) {
-            chunks.enumerate().for_each(go);
-            Ok(())
+    // Pass j reads the estimate of pass j - 1 (none for the first) and writes the one
+    // pass j + 1 reads; the last pass writes the sums. Two estimates take turns.
+    let scratch = |passes: usize| {
+        if params.iterations >= passes {
+            vec![0f32; fine_h * fine_w * EST_LANES]
         } else {
-            parallel::install(|| {
-                sum.par_chunks_mut(band_rows * row_len)
-                    .zip(wsum.par_chunks_mut(band_rows * fine_w))
-                    .enumerate()
-                    .for_each(go);
-            })
+            Vec::new()
         }
     };
-    accumulate(&wk, sum, wsum)?;
-    let mut est = if params.iterations > 0 {
-        vec![0f32; sum.len()]
-    } else {
-        Vec::new()
-    };
-    for _ in 0..params.iterations {
-        // The estimate sum / wsum, once per pixel (sum and wsum are rebuilt by the
-        // next accumulation).
-        {
-            let (s_ro, w_ro): (&[f32], &[f32]) = (sum, wsum);
-            parallel::for_each_row_chunk(&mut est, row_len, |first, rows| {
-                for (j, e) in rows.chunks_exact_mut(channels).enumerate() {
-                    let p = first * fine_w + j;
-                    let ws = w_ro[p];
-                    let sp = &s_ro[p * channels..(p + 1) * channels];
-                    for (o, &v) in e.iter_mut().zip(sp) {
-                        *o = if ws > 1e-6 { v / ws } else { f32::NAN };
-                    }
-                }
-                Ok(())
-            })?;
+    let (mut est_a, mut est_b) = (scratch(1), scratch(2));
+    let mut last = Some(last);
+    for pass in 0..=params.iterations {
+        if pass >= 2 {
+            std::mem::swap(&mut est_a, &mut est_b);
         }
-        let est: &[f32] = &est;
-        let base = weights;
-        let reweight = |first: usize, chunk: &mut [f32]| -> Result<()> {
-            let mut buf = [0f32; MAX_CHANNELS];
-            for (j, w) in chunk.iter_mut().enumerate() {
-                let k = first + j;
-                let w0 = base.map_or(1.0, |b| b[k]);
-                if !positive(w0) {
-                    *w = 0.0;
-                    continue;
-                }
-                let Some((fx, fy)) = fine_pos(positions, k, params.factor) else {
-                    *w = 0.0;
-                    continue;
-                };
-                if !estimate_at(est, fine_h, fine_w, channels, fx, fy, &mut buf) {
-                    *w = w0; // no estimate there yet: keep the sample
-                    continue;
-                }
-                let v = &values[k * channels..(k + 1) * channels];
-                let e = v
-                    .iter()
-                    .zip(&buf[..channels])
-                    .map(|(a, b)| (a - b).abs())
-                    .sum::<f32>()
-                    / channels as f32;
-                let keep = e <= params.reject; // false for NaN
-                *w = if !keep {
-                    0.0
-                } else if e > params.huber {
-                    w0 * params.huber / e
-                } else {
-                    w0
-                };
-            }
-            Ok(())
+        // `est_a` holds the previous pass's estimate; `est_b` is written.
+        let (read, write): (Option<&[f32]>, &mut [f32]) = match pass {
+            0 => (None, &mut est_a),
+            _ => (Some(&est_a), &mut est_b),
         };
-        parallel::for_each_row_chunk(&mut wk, 1, reweight)?;
-        accumulate(&wk, sum, wsum)?;
+        let job = SplatJob {
+            bins: &bins,
+            positions,
+            values,
+            weights,
+            fine_w,
+            fine_h,
+            params,
+            est: read,
+        };
+        let out = if pass == params.iterations {
+            last.take()
+                .ok_or_else(|| Error::Numerical("shift_and_add: no last pass".into()))?
+        } else {
+            PassOut::Estimate(write)
+        };
+        match channels {
+            1 => splat_pass::<1, 4>(&job, out, threads)?,
+            2 => splat_pass::<2, 4>(&job, out, threads)?,
+            3 => splat_pass::<3, 4>(&job, out, threads)?,
+            _ => splat_pass::<4, 8>(&job, out, threads)?,
+        }
     }
     Ok(())
+}
+
+/// The `k`-th smallest (from 0) of the positive values of `v` (NaN and non-positive
+/// ones left out), `k` below their count: a radix select on the bit patterns, which
+/// order positive floats as their values do (two passes of 16 bits, no sorting).
+fn kth_positive(v: &[f32], k: usize) -> f32 {
+    let mut counts = vec![0usize; 1 << 16];
+    for &x in v {
+        if positive(x) {
+            counts[(x.to_bits() >> 16) as usize] += 1;
+        }
+    }
+    let (mut hi, mut below) = (0usize, 0usize);
+    for (b, &n) in counts.iter().enumerate() {
+        if below + n > k {
+            hi = b;
+            break;
+        }
+        below += n;
+    }
+    counts.fill(0);
+    for &x in v {
+        if positive(x) && (x.to_bits() >> 16) as usize == hi {
+            counts[(x.to_bits() & 0xffff) as usize] += 1;
+        }
+    }
+    let mut lo = 0usize;
+    for (b, &n) in counts.iter().enumerate() {
+        if below + n > k {
+            lo = b;
+            break;
+        }
+        below += n;
+    }
+    f32::from_bits(((hi as u32) << 16) | lo as u32)
+}
+
+/// The deblurring's data weights from the shift-and-add weights `wsum`:
+/// `a = sqrt(clip(wsum / t, 0, 4))` in f32, `t` the median of the positive weights (1
+/// if there are none). The median is numpy's: the middle value, or for an even count
+/// the f32 mean of the two middle ones, so `a` is what
+/// `np.sqrt(np.clip(wsum / float(np.median(wsum[wsum > 0])), 0, 4))` gives. Returns `t`.
+///
+/// # Errors
+/// [`Error::InvalidArgument`] naming `a` if its length differs from `wsum`'s.
+pub fn data_weights(wsum: &[f32], a: &mut [f32]) -> Result<f32> {
+    check_len("a", a.len(), wsum.len(), "wsum's size")?;
+    let n = wsum.iter().filter(|&&x| positive(x)).count();
+    let t = match n {
+        0 => 1.0,
+        _ if n % 2 == 1 => kth_positive(wsum, n / 2),
+        _ => (kth_positive(wsum, n / 2 - 1) + kth_positive(wsum, n / 2)) / 2.0,
+    };
+    parallel::for_each_row_chunk(a, 1, |first, rows| {
+        for (o, &w) in rows.iter_mut().zip(&wsum[first..]) {
+            *o = (w / t).clamp(0.0, 4.0).sqrt();
+        }
+        Ok(())
+    })?;
+    Ok(t)
 }
 
 // --------------------------------------------------------------------------------------
@@ -1015,6 +1685,23 @@ fn soft_sign_diff(out: &mut [f32], a: &[f32], b: &[f32], eps: f32) {
     }
 }
 
+/// [`soft_sign_diff`] times `m[i]`, element by element (`soft(t) * m`).
+#[inline(always)]
+fn soft_sign_diff_times(out: &mut [f32], a: &[f32], b: &[f32], m: &[f32], eps: f32) {
+    if eps > 0.0 {
+        let e2 = eps * eps;
+        for (((o, &va), &vb), &vm) in out.iter_mut().zip(a).zip(b).zip(m) {
+            let t = va - vb;
+            *o = (t / (t * t + e2).sqrt()) * vm;
+        }
+    } else {
+        soft_sign_diff(out, a, b, eps);
+        for (o, &vm) in out.iter_mut().zip(m) {
+            *o *= vm;
+        }
+    }
+}
+
 /// `dst = sum_t taps[t] src[x + t - r]` along one row of `w` pixels of `c` channels,
 /// clamped at the ends (via `pad`, `(w + 2r) c` long).
 #[inline(always)]
@@ -1027,9 +1714,45 @@ fn blur_row(src: &[f32], dst: &mut [f32], pad: &mut [f32], w: usize, c: usize, t
         let e = (r + w + k) * c;
         pad[e..e + c].copy_from_slice(&src[row_len - c..]);
     }
+    let pad: &[f32] = pad;
+    weighted_rows(dst, taps, |t| &pad[t * c..t * c + row_len]);
+}
+
+/// `dst[i] = sum_t taps[t] rows(t)[i]`, the terms added in order of `t` from 0 (as
+/// `dst` zeroed, then `dst += taps[t] rows(t)` tap by tap, but in registers: one pass
+/// over `dst`). `rows(t)` has `dst.len()` elements. The usual tap counts are constants
+/// here, so that the loop over taps unrolls and the one over `i` vectorises.
+#[inline(always)]
+fn weighted_rows<'r>(dst: &mut [f32], taps: &[f32], rows: impl Fn(usize) -> &'r [f32]) {
+    #[inline(always)]
+    fn fixed<const K: usize>(dst: &mut [f32], taps: &[f32; K], rows: [&[f32]; K]) {
+        let n = dst.len();
+        let rows: [&[f32]; K] = rows.map(|r| &r[..n]);
+        for (i, o) in dst.iter_mut().enumerate() {
+            let mut acc = 0.0f32;
+            for t in 0..K {
+                acc += taps[t] * rows[t][i];
+            }
+            *o = acc;
+        }
+    }
+    macro_rules! go {
+        ($k:literal) => {
+            if let Ok(t) = <&[f32; $k]>::try_from(taps) {
+                return fixed::<$k>(dst, t, std::array::from_fn(|i| rows(i)));
+            }
+        };
+    }
+    go!(1);
+    go!(3);
+    go!(5);
+    go!(7);
+    go!(9);
+    go!(11);
+    go!(13);
     dst.fill(0.0);
     for (t, &g) in taps.iter().enumerate() {
-        for (o, &v) in dst.iter_mut().zip(&pad[t * c..t * c + row_len]) {
+        for (o, &v) in dst.iter_mut().zip(rows(t)) {
             *o += g * v;
         }
     }
@@ -1100,6 +1823,8 @@ struct BtvScratch {
     hx: Vec<f32>,
     g: Vec<f32>,
     reg: Vec<f32>,
+    /// A's row, each weight repeated over the channels.
+    arow: Vec<f32>,
 }
 
 impl BtvScratch {
@@ -1115,6 +1840,7 @@ impl BtvScratch {
             hx: vec![0.0; row_len],
             g: vec![0.0; row_len],
             reg: vec![0.0; row_len],
+            arow: vec![0.0; row_len],
         }
     }
 }
@@ -1148,20 +1874,16 @@ fn ensure_dh(job: &BtvStep<'_>, sc: &mut BtvScratch, y: usize) {
     for t in 0..job.taps.len() {
         ensure_xh(job, sc, clamp_row(y, t, r, h));
     }
-    sc.hx.fill(0.0);
-    for (t, &g) in job.taps.iter().enumerate() {
-        let src = sc.xh.row(clamp_row(y, t, r, h));
-        for (o, &v) in sc.hx.iter_mut().zip(src) {
-            *o += g * v;
-        }
-    }
-    // d = A sign(H x - z), into `g` (free until the row's own gradient is formed).
+    let xh = &sc.xh;
+    weighted_rows(&mut sc.hx, job.taps, |t| xh.row(clamp_row(y, t, r, h)));
+    // d = A sign(H x - z), into `g` (free until the row's own gradient is formed): the
+    // signs times A's row spread over the channels (`sign * a`, as before).
     let z = &job.z[y * row_len..(y + 1) * row_len];
-    soft_sign_diff(&mut sc.g, &sc.hx, z, job.eps);
     let a = &job.a[y * w..(y + 1) * w];
-    for (px, &aw) in sc.g.chunks_exact_mut(c).zip(a) {
-        px.iter_mut().for_each(|v| *v *= aw);
+    for (px, &aw) in sc.arow.chunks_exact_mut(c).zip(a) {
+        px.fill(aw);
     }
+    soft_sign_diff_times(&mut sc.g, &sc.hx, z, &sc.arow, job.eps);
     blur_row(&sc.g, sc.dh.claim(y), &mut sc.pad, w, c, job.taps);
 }
 
@@ -1212,13 +1934,8 @@ fn btv_rows(job: &BtvStep<'_>, first: usize, out: &mut [f32]) -> Result<()> {
         for t in 0..k {
             ensure_dh(job, &mut sc, clamp_row(y, t, r, h));
         }
-        sc.g.fill(0.0);
-        for (t, &g) in job.taps.iter().enumerate() {
-            let src = sc.dh.row(clamp_row(y, t, r, h));
-            for (o, &v) in sc.g.iter_mut().zip(src) {
-                *o += g * v;
-            }
-        }
+        let dh = &sc.dh;
+        weighted_rows(&mut sc.g, job.taps, |t| dh.row(clamp_row(y, t, r, h)));
         // BTV term: sum over all shifts s of w_s D_s(p), which (D_{-s}(p) = -D_s(p - s))
         // is the sum over half of them of w_s (D_s(p) - D_s(p - s)).
         for yy in y.saturating_sub(job.window)..=y {
@@ -1535,6 +2252,304 @@ mod tests {
             }
         }
         assert!(n > 80, "{n}");
+    }
+
+    /// Shift-and-add straight from its definition, one sample at a time in increasing
+    /// order (robust passes as documented): the kernel must match it bit for bit.
+    fn splat_naive(
+        pos: &[f32],
+        val: &[f32],
+        weights: Option<&[f32]>,
+        c: usize,
+        fh: usize,
+        fw: usize,
+        p: &SplatParams,
+    ) -> (Vec<f32>, Vec<f32>) {
+        let m = pos.len() / 2;
+        let r = if p.sigma > 0.0 { p.radius as i64 } else { 0 };
+        let inv2s2 = if p.sigma > 0.0 {
+            1.0 / (2.0 * p.sigma * p.sigma)
+        } else {
+            0.0
+        };
+        let accumulate = |wk: &[f32]| {
+            let mut sum = vec![0f32; fh * fw * c];
+            let mut ws = vec![0f32; fh * fw];
+            for k in 0..m {
+                let Some((fx, fy)) = fine_pos(pos, k, p.factor) else {
+                    continue;
+                };
+                let v = &val[k * c..(k + 1) * c];
+                if !positive(wk[k]) || v.iter().any(|x| !x.is_finite()) {
+                    continue;
+                }
+                let (xc, yc) = (nearest(fx), nearest(fy));
+                let (dx0, dy0) = ((xc - r) as f32 - fx, (yc - r) as f32 - fy);
+                for ty in 0..=2 * r {
+                    let yy = yc - r + ty;
+                    let dy = dy0 + ty as f32;
+                    let gy = if r > 0 {
+                        exp_neg(-dy * dy * inv2s2)
+                    } else {
+                        1.0
+                    };
+                    let wy = wk[k] * gy;
+                    for tx in 0..=2 * r {
+                        let xx = xc - r + tx;
+                        if yy < 0 || yy >= fh as i64 || xx < 0 || xx >= fw as i64 {
+                            continue;
+                        }
+                        let dx = dx0 + tx as f32;
+                        let gx = if r > 0 {
+                            exp_neg(-dx * dx * inv2s2)
+                        } else {
+                            1.0
+                        };
+                        let wt = wy * gx;
+                        let px = yy as usize * fw + xx as usize;
+                        for ch in 0..c {
+                            sum[px * c + ch] += wt * v[ch];
+                        }
+                        ws[px] += wt;
+                    }
+                }
+            }
+            (sum, ws)
+        };
+        let base: Vec<f32> = (0..m).map(|k| weights.map_or(1.0, |w| w[k])).collect();
+        let (mut sum, mut ws) = accumulate(&base);
+        for _ in 0..p.iterations {
+            let mut est = vec![0f32; fh * fw * EST_LANES];
+            for (px, e) in est.chunks_exact_mut(EST_LANES).enumerate() {
+                for ch in 0..c {
+                    e[ch] = if ws[px] > 1e-6 {
+                        sum[px * c + ch] / ws[px]
+                    } else {
+                        f32::NAN
+                    };
+                }
+            }
+            let wk: Vec<f32> = (0..m)
+                .map(|k| {
+                    let w0 = base[k];
+                    let Some((fx, fy)) = fine_pos(pos, k, p.factor) else {
+                        return 0.0;
+                    };
+                    if !positive(w0) {
+                        return 0.0;
+                    }
+                    let mut buf = [0f32; EST_LANES];
+                    if !estimate_at(&est, fh, fw, fx, fy, &mut buf) {
+                        return w0;
+                    }
+                    let v = &val[k * c..(k + 1) * c];
+                    let e = v.iter().zip(&buf).map(|(a, b)| (a - b).abs()).sum::<f32>() / c as f32;
+                    let keep = e <= p.reject; // false for NaN
+                    if !keep {
+                        0.0
+                    } else if e > p.huber {
+                        w0 * p.huber / e
+                    } else {
+                        w0
+                    }
+                })
+                .collect();
+            (sum, ws) = accumulate(&wk);
+        }
+        (sum, ws)
+    }
+
+    #[test]
+    fn shift_and_add_matches_the_definition_bit_for_bit() {
+        let mut seed = 99u64;
+        let mut rnd = move || {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((seed >> 40) as f32) / (1u64 << 24) as f32
+        };
+        let (h, w) = (23usize, 31usize);
+        for &(c, factor, sigma, radius, iterations, scan) in &[
+            (3usize, 2.0f32, 0.4f32, 1usize, 1usize, true),
+            (3, 2.0, 0.4, 1, 0, false),
+            (1, 3.0, 0.0, 0, 1, true),
+            (2, 1.0, 0.35, 1, 2, false),
+            (4, 2.0, 0.5, 1, 1, true),
+            (3, 2.0, 0.8, 2, 1, true),
+            (4, 1.5, 0.6, 3, 0, false),
+        ] {
+            let (fh, fw) = (
+                (h as f32 * factor).round() as usize,
+                (w as f32 * factor).round() as usize,
+            );
+            let m = 4000;
+            let mut pos = Vec::with_capacity(2 * m);
+            for k in 0..m {
+                if scan {
+                    // Rows of a slightly rotated grid with jitter, as placed raw samples.
+                    let (i, j) = ((k % 70) as f32, (k / 70) as f32);
+                    pos.push(-2.0 + 0.5 * i + 0.01 * j + 0.2 * rnd());
+                    pos.push(-1.0 + 0.45 * j - 0.01 * i + 0.2 * rnd());
+                } else {
+                    pos.push(-2.0 + (w + 3) as f32 * rnd());
+                    pos.push(-2.0 + (h + 3) as f32 * rnd());
+                }
+            }
+            // Unusable and extreme samples.
+            pos[10] = f32::NAN;
+            pos[21] = f32::INFINITY;
+            pos[30] = 1e30;
+            pos[41] = -1e30;
+            pos[50] = -3e9;
+            pos[61] = 5e9;
+            let mut val: Vec<f32> = (0..m * c).map(|_| rnd()).collect();
+            val[7 * c] = f32::NAN;
+            // Outliers for the robust passes.
+            for k in (0..m).step_by(9) {
+                val[k * c] += 0.5;
+            }
+            let wts: Vec<f32> = (0..m)
+                .map(|k| if k % 17 == 0 { 0.0 } else { 0.5 + rnd() })
+                .collect();
+            let p = SplatParams {
+                factor,
+                sigma,
+                radius,
+                iterations,
+                huber: 0.05,
+                reject: 0.3,
+            };
+            for weights in [None, Some(&wts[..])] {
+                let (ws_ref, wsum_ref) = splat_naive(&pos, &val, weights, c, fh, fw, &p);
+                let mut sum = vec![0f32; fh * fw * c];
+                let mut ws = vec![0f32; fh * fw];
+                shift_and_add(&pos, &val, weights, c, fh, fw, &p, &mut sum, &mut ws).unwrap();
+                let same =
+                    |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits());
+                assert!(
+                    same(&ws, &wsum_ref),
+                    "wsum, C {c} r {radius} it {iterations}"
+                );
+                assert!(same(&sum, &ws_ref), "sum, C {c} r {radius} it {iterations}");
+            }
+        }
+    }
+
+    /// Placement one sample at a time (the fixed-point iteration as documented).
+    fn place_naive(
+        inv: &[f32],
+        view: &[i32],
+        offsets: &[[f64; 2]],
+        par: &[f32],
+        h: usize,
+        w: usize,
+        p: &PlaceParams,
+    ) -> Vec<f32> {
+        let mut out = vec![f32::NAN; inv.len()];
+        for (k, &vi) in view.iter().enumerate() {
+            let (qx, qy) = (inv[2 * k], inv[2 * k + 1]);
+            if vi < 0 || !qx.is_finite() || !qy.is_finite() {
+                continue;
+            }
+            let (ox, oy) = (
+                offsets[vi as usize][0] as f32,
+                offsets[vi as usize][1] as f32,
+            );
+            if ox == 0.0 && oy == 0.0 {
+                out[2 * k] = qx;
+                out[2 * k + 1] = qy;
+                continue;
+            }
+            let (mut px, mut py) = (qx, qy);
+            let mut s = sample_nan_aware(par, h, w, px, py);
+            for _ in 0..p.iterations {
+                if !s.is_finite() {
+                    break;
+                }
+                let (nx, ny) = (qx - ox * s, qy - oy * s);
+                let moved = (nx - px).abs() + (ny - py).abs();
+                (px, py) = (nx, ny);
+                s = sample_nan_aware(par, h, w, px, py);
+                if moved < 1e-4 {
+                    break;
+                }
+            }
+            let (ex, ey) = (px + ox * s - qx, py + oy * s - qy);
+            if s.is_finite() && ex * ex + ey * ey <= p.tolerance * p.tolerance {
+                out[2 * k] = px;
+                out[2 * k + 1] = py;
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn placement_matches_one_sample_at_a_time() {
+        let (h, w) = (40usize, 50usize);
+        let mut par = vec![0f32; h * w];
+        for y in 0..h {
+            for x in 0..w {
+                // Smooth, with a step (an occlusion edge) and a hole.
+                let s = 0.05 * (x as f32 / 7.0).sin() + if x > 30 { 0.15 } else { 0.0 };
+                par[y * w + x] = if (10..13).contains(&y) && (5..9).contains(&x) {
+                    f32::NAN
+                } else {
+                    s
+                };
+            }
+        }
+        let offsets = [[0.0, 0.0], [12.0, -3.0], [-20.0, 8.0]];
+        let m = 5003;
+        let mut inv = Vec::with_capacity(2 * m);
+        let mut view = Vec::with_capacity(m);
+        for k in 0..m {
+            inv.push(-1.0 + (k % 97) as f32 * 0.53);
+            inv.push(-1.0 + (k / 97) as f32 * 0.8);
+            view.push((k % 4) as i32 - 1);
+        }
+        inv[6] = f32::NAN;
+        let p = PlaceParams {
+            iterations: 6,
+            tolerance: 0.25,
+        };
+        let want = place_naive(&inv, &view, &offsets, &par, h, w, &p);
+        let mut got = vec![0f32; inv.len()];
+        place_samples(&inv, &view, &offsets, &par, h, w, &p, &mut got).unwrap();
+        assert!(
+            want.iter()
+                .zip(&got)
+                .all(|(a, b)| a.to_bits() == b.to_bits())
+        );
+        assert!(got.iter().filter(|v| v.is_finite()).count() > m / 2);
+    }
+
+    #[test]
+    fn weighted_rows_add_taps_in_order() {
+        // The unrolled sums (tap counts 1..=13) equal tap-by-tap accumulation exactly.
+        let rows: Vec<Vec<f32>> = (0..13)
+            .map(|t| {
+                (0..101)
+                    .map(|i| ((i * 7 + t * 13) % 17) as f32 * 0.37 - 2.0)
+                    .collect()
+            })
+            .collect();
+        for k in [1usize, 3, 5, 7, 9, 11, 13, 2] {
+            let taps: Vec<f32> = (0..k).map(|t| 0.1 + t as f32 * 0.173).collect();
+            let mut got = vec![0f32; 101];
+            weighted_rows(&mut got, &taps, |t| &rows[t]);
+            let mut want = vec![0f32; 101];
+            for (t, &g) in taps.iter().enumerate() {
+                for (o, &v) in want.iter_mut().zip(&rows[t]) {
+                    *o += g * v;
+                }
+            }
+            assert!(
+                got.iter()
+                    .zip(&want)
+                    .all(|(a, b)| a.to_bits() == b.to_bits()),
+                "{k}"
+            );
+        }
     }
 
     #[test]

@@ -39,7 +39,9 @@ mod lfcam_ext {
     #[pymodule_export]
     use crate::stats::nan_median;
     #[pymodule_export]
-    use crate::superres::{btv_deblur, invert_maps, place_samples, shift_and_add};
+    use crate::superres::{
+        btv_deblur, data_weights, invert_maps, place_samples, shift_and_add, shift_and_add_mean,
+    };
     #[pymodule_export]
     use crate::threads::{get_num_threads, set_num_threads};
     #[pymodule_export]

@@ -1,8 +1,9 @@
-//! `invert_maps`, `place_samples`, `shift_and_add`, `btv_deblur`.
+//! `invert_maps`, `place_samples`, `shift_and_add`, `shift_and_add_mean`, `data_weights`,
+//! `btv_deblur`.
 
 use lfcam_core::parallel;
 use lfcam_core::superres::{self as core, BtvParams, PlaceParams, SplatParams};
-use numpy::{PyArrayDyn, PyArrayMethods, PyUntypedArrayMethods};
+use numpy::{PyArrayDyn, PyArrayMethods, PyReadonlyArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::PyTuple;
 
@@ -174,6 +175,84 @@ pub fn place_samples<'py>(
     })
 }
 
+/// The samples of a shift-and-add call, borrowed and checked.
+struct Samples<'py> {
+    pos: PyReadonlyArrayDyn<'py, f32>,
+    val: PyReadonlyArrayDyn<'py, f32>,
+    weights: Option<PyReadonlyArrayDyn<'py, f32>>,
+    channels: usize,
+}
+
+impl<'py> Samples<'py> {
+    /// positions: (..., 2) float32; values: (..., C) float32; weights: None or (...).
+    fn borrow(
+        positions: &Bound<'py, PyAny>,
+        values: &Bound<'py, PyAny>,
+        weights: Option<&Bound<'py, PyAny>>,
+    ) -> PyResult<Self> {
+        let py = positions.py();
+        let pos = typed::<f32>(positions, "positions", "float32")?;
+        let val = typed::<f32>(values, "values", "float32")?;
+        let pshape = pos.shape();
+        let vshape = val.shape();
+        if pshape.last() != Some(&2)
+            || vshape.len() != pshape.len()
+            || vshape[..vshape.len() - 1] != pshape[..pshape.len() - 1]
+        {
+            return Err(input_error(
+                py,
+                "values",
+                format!(
+                    "expected shape (..., C) matching positions' (..., 2) {pshape:?}, got {vshape:?}"
+                ),
+            ));
+        }
+        let channels = *vshape.last().unwrap_or(&0);
+        let weights = weights
+            .map(|o| typed::<f32>(o, "weights", "float32"))
+            .transpose()?;
+        if let Some(ro) = &weights
+            && ro.shape() != &pshape[..pshape.len() - 1]
+        {
+            return Err(input_error(
+                py,
+                "weights",
+                format!(
+                    "expected shape {:?}, got {:?}",
+                    &pshape[..pshape.len() - 1],
+                    ro.shape()
+                ),
+            ));
+        }
+        Ok(Self {
+            pos,
+            val,
+            weights,
+            channels,
+        })
+    }
+}
+
+#[allow(clippy::too_many_arguments)]
+fn splat_params(
+    py: Python<'_>,
+    factor: f64,
+    sigma: f64,
+    radius: i64,
+    iterations: i64,
+    huber: f64,
+    reject: f64,
+) -> PyResult<SplatParams> {
+    Ok(SplatParams {
+        factor: factor as f32,
+        sigma: sigma as f32,
+        radius: count(py, radius, "radius")?,
+        iterations: count(py, iterations, "iterations")?,
+        huber: huber as f32,
+        reject: reject as f32,
+    })
+}
+
 /// Robust shift-and-add of scattered samples onto a fine grid.
 ///
 /// positions: (..., 2) float32 rectified (x, y); values: (..., C) float32, C <= 4;
@@ -199,59 +278,106 @@ pub fn shift_and_add<'py>(
     guarded(py, "shift_and_add", || {
         let fh = count(py, fine_height, "fine_height")?;
         let fw = count(py, fine_width, "fine_width")?;
-        let params = SplatParams {
-            factor: factor as f32,
-            sigma: sigma as f32,
-            radius: count(py, radius, "radius")?,
-            iterations: count(py, iterations, "iterations")?,
-            huber: huber as f32,
-            reject: reject as f32,
-        };
-        let pos_ro = typed::<f32>(positions, "positions", "float32")?;
-        let val_ro = typed::<f32>(values, "values", "float32")?;
-        let pshape = pos_ro.shape();
-        let vshape = val_ro.shape();
-        if pshape.last() != Some(&2)
-            || vshape.len() != pshape.len()
-            || vshape[..vshape.len() - 1] != pshape[..pshape.len() - 1]
-        {
-            return Err(input_error(
-                py,
-                "values",
-                format!(
-                    "expected shape (..., C) matching positions' (..., 2) {pshape:?}, got {vshape:?}"
-                ),
-            ));
-        }
-        let channels = *vshape.last().unwrap_or(&0);
-        let w_ro = weights
-            .map(|o| typed::<f32>(o, "weights", "float32"))
+        let params = splat_params(py, factor, sigma, radius, iterations, huber, reject)?;
+        let s = Samples::borrow(positions, values, weights)?;
+        let pos_s = c_slice(&s.pos, "positions")?;
+        let val_s = c_slice(&s.val, "values")?;
+        let w_s = s
+            .weights
+            .as_ref()
+            .map(|w| c_slice(w, "weights"))
             .transpose()?;
-        let w_s = match &w_ro {
-            Some(ro) => {
-                if ro.shape() != &pshape[..pshape.len() - 1] {
-                    return Err(input_error(
-                        py,
-                        "weights",
-                        format!(
-                            "expected shape {:?}, got {:?}",
-                            &pshape[..pshape.len() - 1],
-                            ro.shape()
-                        ),
-                    ));
-                }
-                Some(c_slice(ro, "weights")?)
-            }
-            None => None,
-        };
-        let pos_s = c_slice(&pos_ro, "positions")?;
-        let val_s = c_slice(&val_ro, "values")?;
-        let sum = new_array::<f32>(py, &[fh, fw, channels])?;
+        let c = s.channels;
+        let sum = new_array::<f32>(py, &[fh, fw, c])?;
         let wsum = new_array::<f32>(py, &[fh, fw])?;
-        fill2(&sum, &wsum, "shift_and_add", |s, ws| {
-            core::shift_and_add(pos_s, val_s, w_s, channels, fh, fw, &params, s, ws)
+        fill2(&sum, &wsum, "shift_and_add", |sm, ws| {
+            core::shift_and_add(pos_s, val_s, w_s, c, fh, fw, &params, sm, ws)
         })?;
         PyTuple::new(py, [sum.into_any(), wsum.into_any()])
+    })
+}
+
+/// Robust shift-and-add that returns the fused image itself.
+///
+/// As `shift_and_add`, plus min_weight. Returns (mean, wsum, have): mean (fine_h,
+/// fine_w, C) float32, sum / wsum where wsum >= min_weight and finite, else 0; wsum
+/// (fine_h, fine_w) float32; have (fine_h, fine_w) bool, where mean is data.
+#[pyfunction]
+#[pyo3(signature = (positions, values, weights, fine_height, fine_width, factor, sigma, radius, iterations, huber, reject, min_weight))]
+#[allow(clippy::too_many_arguments)]
+pub fn shift_and_add_mean<'py>(
+    py: Python<'py>,
+    positions: &Bound<'py, PyAny>,
+    values: &Bound<'py, PyAny>,
+    weights: Option<&Bound<'py, PyAny>>,
+    fine_height: i64,
+    fine_width: i64,
+    factor: f64,
+    sigma: f64,
+    radius: i64,
+    iterations: i64,
+    huber: f64,
+    reject: f64,
+    min_weight: f64,
+) -> PyResult<Bound<'py, PyTuple>> {
+    guarded(py, "shift_and_add_mean", || {
+        let fh = count(py, fine_height, "fine_height")?;
+        let fw = count(py, fine_width, "fine_width")?;
+        let params = splat_params(py, factor, sigma, radius, iterations, huber, reject)?;
+        let s = Samples::borrow(positions, values, weights)?;
+        let pos_s = c_slice(&s.pos, "positions")?;
+        let val_s = c_slice(&s.val, "values")?;
+        let w_s = s
+            .weights
+            .as_ref()
+            .map(|w| c_slice(w, "weights"))
+            .transpose()?;
+        let c = s.channels;
+        let mean = new_array::<f32>(py, &[fh, fw, c])?;
+        let wsum = new_array::<f32>(py, &[fh, fw])?;
+        let have = new_array::<bool>(py, &[fh, fw])?;
+        let mut ra = mean
+            .try_readwrite()
+            .map_err(|e| internal_error(py, "shift_and_add_mean", format!("output borrow: {e}")))?;
+        let mut rb = wsum
+            .try_readwrite()
+            .map_err(|e| internal_error(py, "shift_and_add_mean", format!("output borrow: {e}")))?;
+        let mut rc = have
+            .try_readwrite()
+            .map_err(|e| internal_error(py, "shift_and_add_mean", format!("output borrow: {e}")))?;
+        let slice_err = |e| internal_error(py, "shift_and_add_mean", format!("output slice: {e}"));
+        let m_s = ra.as_slice_mut().map_err(slice_err)?;
+        let ws_s = rb.as_slice_mut().map_err(slice_err)?;
+        let have_s = rc.as_slice_mut().map_err(slice_err)?;
+        let min_w = min_weight as f32;
+        py.detach(|| {
+            parallel::install(|| {
+                core::shift_and_add_mean(
+                    pos_s, val_s, w_s, c, fh, fw, &params, min_w, m_s, ws_s, have_s,
+                )
+            })
+        })
+        .and_then(|inner| inner)
+        .map_err(|e| to_pyerr(py, e))?;
+        PyTuple::new(py, [mean.into_any(), wsum.into_any(), have.into_any()])
+    })
+}
+
+/// The deblurring's data weights: a = sqrt(clip(wsum / t, 0, 4)), t the median of the
+/// positive weights (numpy's median; 1 if none).
+///
+/// wsum: (H, W) float32. Returns a (H, W) float32.
+#[pyfunction]
+pub fn data_weights<'py>(py: Python<'py>, wsum: &Bound<'py, PyAny>) -> PyResult<Bound<'py, PyAny>> {
+    guarded(py, "data_weights", || {
+        let ws_ro = typed::<f32>(wsum, "wsum", "float32")?;
+        let shape = ws_ro.shape().to_vec();
+        let ws_s = c_slice(&ws_ro, "wsum")?;
+        let out = new_array::<f32>(py, &shape)?;
+        fill(&out, "data_weights", |a| {
+            core::data_weights(ws_s, a).map(|_| ())
+        })?;
+        Ok(out.into_any())
     })
 }
 
