@@ -245,6 +245,62 @@ where
     }
 }
 
+/// [`for_each_row_chunk_min`] with per-worker state: `body(&mut state, first_row,
+/// rows)`, `state` made by `init()` once per run of tasks one thread does in a row
+/// (rayon's `try_for_each_init`: a few times per thread, not once per task; once in
+/// all when serial). For scratch buffers that tasks would otherwise allocate and clear
+/// each time.
+///
+/// # Errors
+/// As [`for_each_row_chunk`].
+pub fn for_each_row_chunk_init<T, S, I, F>(
+    out: &mut [T],
+    row_len: usize,
+    min_rows: usize,
+    init: I,
+    body: F,
+) -> Result<()>
+where
+    T: Send,
+    I: Fn() -> S + Sync + Send,
+    F: Fn(&mut S, usize, &mut [T]) -> Result<()> + Sync + Send,
+{
+    if out.is_empty() {
+        return Ok(());
+    }
+    if row_len == 0 || !out.len().is_multiple_of(row_len) {
+        return Err(Error::invalid_argument(
+            "out",
+            format!(
+                "has {} elements, not a whole number of rows of {row_len}",
+                out.len()
+            ),
+        ));
+    }
+    let n_rows = out.len() / row_len;
+    let elem = std::mem::size_of::<T>().max(1);
+    let total_bytes = out.len().saturating_mul(elem);
+    let threads = num_threads();
+    let rows = rows_per_task(n_rows, row_len.saturating_mul(elem), threads)
+        .max(min_rows)
+        .min(n_rows);
+    // `1 <= rows <= n_rows`, so `rows * row_len <= out.len()`: no overflow, never 0.
+    let chunk = rows * row_len;
+    let task = |state: &mut S, (i, rows_out): (usize, &mut [T])| body(state, i * rows, rows_out);
+    if run_serially(total_bytes, threads) {
+        let mut state = init();
+        out.chunks_mut(chunk)
+            .enumerate()
+            .try_for_each(|item| task(&mut state, item))
+    } else {
+        install(|| {
+            out.par_chunks_mut(chunk)
+                .enumerate()
+                .try_for_each_init(&init, task)
+        })?
+    }
+}
+
 /// Like [`for_each_row_chunk`] for two outputs with the same number of rows (of
 /// `row_len_a` and `row_len_b` elements): `body(first_row, rows_a, rows_b)` gets the
 /// same rows of both. The chunking policy is the same, counting the bytes of a row of
@@ -314,6 +370,40 @@ where
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn row_chunks_with_state_cover_every_row_once() {
+        for n_rows in [1usize, 7, 300, 5000] {
+            for row_len in [1usize, 3, 1000] {
+                let mut out = vec![0u32; n_rows * row_len];
+                for_each_row_chunk_init(
+                    &mut out,
+                    row_len,
+                    3,
+                    Vec::<u32>::new,
+                    |seen, first, rows| {
+                        assert!(
+                            rows.len() >= 3 * row_len || first + rows.len() / row_len == n_rows
+                        );
+                        for (k, row) in rows.chunks_exact_mut(row_len).enumerate() {
+                            seen.push(0);
+                            row.fill(u32::try_from(first + k).unwrap() + 1);
+                        }
+                        Ok(())
+                    },
+                )
+                .unwrap();
+                for (r, row) in out.chunks_exact(row_len).enumerate() {
+                    assert!(
+                        row.iter().all(|&v| v as usize == r + 1),
+                        "{n_rows} {row_len}"
+                    );
+                }
+            }
+        }
+        let mut out = vec![0u8; 10];
+        assert!(for_each_row_chunk_init(&mut out, 3, 1, || (), |_, _, _| Ok(())).is_err());
+    }
 
     #[test]
     fn row_chunk_pairs_see_the_same_rows() {

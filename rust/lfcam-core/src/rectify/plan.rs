@@ -29,13 +29,12 @@ use crate::parallel;
 use crate::remap::{Lanes, Linear, MAX_CHANNELS, any_nan, lerp_lanes};
 use crate::simd::Avx2Kernel;
 
-/// One rectified pixel with a value: the top-left pixel of its footprint (crop
-/// coordinates) and its fractions along x and y (0: the footprint has one column, or
-/// one row).
+/// One rectified pixel with a value: the top-left pixel of its footprint, as its index
+/// `row * w + col` in the `w x h` crop, and its fractions along x and y (0: the
+/// footprint has one column, or one row).
 #[derive(Debug, Clone, Copy)]
 struct Tap {
-    col: u16,
-    row: u16,
+    at: u32,
     tx: f32,
     ty: f32,
 }
@@ -352,32 +351,38 @@ impl RectifyPlan {
     ) -> Result<()> {
         let h = self.height;
         let row_len = self.width * C;
-        parallel::for_each_row_chunk_min(out, row_len, MIN_TASK_ROWS, |first_row, rows| {
-            let mut band = Vec::new();
-            let mut g = first_row;
-            let mut rest = rows;
-            while !rest.is_empty() {
-                let (j, v) = (g / h, g % h);
-                let n = (h - v).min(rest.len() / row_len);
-                let (part, tail) = std::mem::take(&mut rest).split_at_mut(n * row_len);
-                let view = views
-                    .get(j)
-                    .and_then(|&i| self.views.get(i))
-                    .ok_or_else(|| internal(g))?;
-                let segment = Segment::<'_, '_, T, C, G> {
-                    plan: self,
-                    view,
-                    raw,
-                    v0: v,
-                    out: part,
-                    band: &mut band,
-                };
-                crate::simd::run_avx2_or_portable(simd, segment)?;
-                rest = tail;
-                g += n;
-            }
-            Ok(())
-        })
+        let init = Scratch::default;
+        parallel::for_each_row_chunk_init(
+            out,
+            row_len,
+            MIN_TASK_ROWS,
+            init,
+            |scratch, first_row, rows| {
+                let mut g = first_row;
+                let mut rest = rows;
+                while !rest.is_empty() {
+                    let (j, v) = (g / h, g % h);
+                    let n = (h - v).min(rest.len() / row_len);
+                    let (part, tail) = std::mem::take(&mut rest).split_at_mut(n * row_len);
+                    let view = views
+                        .get(j)
+                        .and_then(|&i| self.views.get(i))
+                        .ok_or_else(|| internal(g))?;
+                    let segment = Segment::<'_, '_, T, C, G> {
+                        plan: self,
+                        view,
+                        raw,
+                        v0: v,
+                        out: part,
+                        scratch,
+                    };
+                    crate::simd::run_avx2_or_portable(simd, segment)?;
+                    rest = tail;
+                    g += n;
+                }
+                Ok(())
+            },
+        )
     }
 
     /// Rows `v0..` of one view into `out` (whole rows).
@@ -388,7 +393,7 @@ impl RectifyPlan {
         raw: &ImageView<'_, T>,
         v0: usize,
         out: &mut [f32],
-        band: &mut Vec<f32>,
+        scratch: &mut Scratch,
     ) -> Result<()> {
         let row_len = self.width * C;
         let n = out.len() / row_len;
@@ -406,8 +411,11 @@ impl RectifyPlan {
         }
         let (c0, bw) = (cols.0, cols.1 - cols.0 + 1);
         let (r0, bh) = (rws.0, rws.1 - rws.0 + 1);
+        let band = &mut scratch.band;
         fill_band::<T, C, G>(view, raw, (c0, bw), (r0, bh), band).ok_or_else(|| internal(v0))?;
-        let stride = bw * C;
+        // Band pixel `(r, c)` of the crop is at `(r - r0) * stride + c * C`: a tap at
+        // crop index `at` starts at `(at - base) * C`.
+        let (stride, base) = (view.crop.w * C, r0 * view.crop.w);
         for (k, (row, out_row)) in rows.iter().zip(out.chunks_exact_mut(row_len)).enumerate() {
             let bad = || internal(v0 + k);
             let runs = view.runs.get(row.runs.0..row.runs.1).ok_or_else(bad)?;
@@ -415,14 +423,15 @@ impl RectifyPlan {
             let mut done = 0;
             for &(u0, len) in runs {
                 let (u0, len) = (u0 as usize, len as usize);
-                // The gap first: the run's last pixel may spill a lane into it.
+                // The gap first: the run's pixels but the last spill a lane into the
+                // next one, written after it.
                 out_row
                     .get_mut(done * C..u0 * C)
                     .ok_or_else(bad)?
                     .fill(f32::NAN);
                 let (run, tail) = taps.split_at_checked(len).ok_or_else(bad)?;
-                sample_run::<C, CHECK_NAN>(band, stride, (c0, r0), run, out_row, u0)
-                    .ok_or_else(bad)?;
+                let dst = out_row.get_mut(u0 * C..(u0 + len) * C).ok_or_else(bad)?;
+                sample_run::<C, CHECK_NAN>(band, stride, base, run, dst).ok_or_else(bad)?;
                 taps = tail;
                 done = u0 + len;
             }
@@ -430,6 +439,13 @@ impl RectifyPlan {
         }
         Ok(())
     }
+}
+
+/// Per-worker scratch buffers of [`RectifyPlan::run`]'s tasks.
+#[derive(Debug, Default)]
+struct Scratch {
+    /// The gained raw pixels of a segment's footprint box ([`fill_band`]).
+    band: Vec<f32>,
 }
 
 /// Rows `v0..` of one view into `out`: [`RectifyPlan::segment`], for
@@ -440,7 +456,7 @@ struct Segment<'a, 'r, T, const C: usize, const G: usize> {
     raw: &'a ImageView<'r, T>,
     v0: usize,
     out: &'a mut [f32],
-    band: &'a mut Vec<f32>,
+    scratch: &'a mut Scratch,
 }
 
 impl<T: RawSample, const C: usize, const G: usize> Avx2Kernel for Segment<'_, '_, T, C, G> {
@@ -454,22 +470,24 @@ impl<T: RawSample, const C: usize, const G: usize> Avx2Kernel for Segment<'_, '_
             raw,
             v0,
             out,
-            band,
+            scratch,
         } = self;
         // Integer samples times tame gains are finite: no NaN to test for.
         if !T::INTEGER || view.wild {
-            plan.segment::<T, C, G, true>(view, raw, v0, out, band)
+            plan.segment::<T, C, G, true>(view, raw, v0, out, scratch)
         } else {
-            plan.segment::<T, C, G, false>(view, raw, v0, out, band)
+            plan.segment::<T, C, G, false>(view, raw, v0, out, scratch)
         }
     }
 }
 
 /// `band` := the gained raw pixels (`raw * scale * gains`) of crop columns `c0 .. c0 +
-/// bw`, rows `r0 .. r0 + bh`, `C` values each, row after row, where the plan keeps
-/// gains (every pixel a footprint reads); the others are left as they were (never
-/// read). At least 8 values of padding follow, so that four lanes can be read at any
-/// pixel. `None` if the plan and the frame disagree (a bug).
+/// bw`, rows `r0 .. r0 + bh`, `C` values each, crop pixel `(r, c)` at index
+/// `(r - r0) * w * C + c * C` (`w` the crop's width: a tap's place in the band follows
+/// from its crop index alone), where the plan keeps gains (every pixel a footprint
+/// reads); the others are left as they were (never read). At least 8 values of
+/// padding follow, so that two pixels' lanes can be read at any pixel. `None` if the
+/// plan and the frame disagree (a bug).
 #[inline(always)]
 fn fill_band<T: RawSample, const C: usize, const G: usize>(
     view: &ViewPlan,
@@ -478,11 +496,11 @@ fn fill_band<T: RawSample, const C: usize, const G: usize>(
     (r0, bh): (usize, usize),
     band: &mut Vec<f32>,
 ) -> Option<()> {
-    let len = bh * bw * C + 8;
+    let stride = view.crop.w * C;
+    let len = bh * stride + 8;
     if band.len() < len {
         band.resize(len, 0.0);
     }
-    let stride = bw * C;
     for (k, y) in (r0..r0 + bh).enumerate() {
         let gr = *view.gain_rows.get(y)?;
         let (lo, hi) = (gr.lo.max(c0), gr.hi.min(c0 + bw));
@@ -493,7 +511,7 @@ fn fill_band<T: RawSample, const C: usize, const G: usize>(
         let raw_px = raw.row_span(view.crop.y0 + y, view.crop.x0 + lo, n)?;
         let at = gr.at + (lo - gr.lo) * G;
         let gains = view.gains.get(at..at + n * G)?;
-        let start = k * stride + (lo - c0) * C;
+        let start = k * stride + lo * C;
         let dst = band.get_mut(start..start + n * C)?;
         if G == C {
             for ((d, &r), &g) in dst.iter_mut().zip(raw_px).zip(gains) {
@@ -512,55 +530,86 @@ fn fill_band<T: RawSample, const C: usize, const G: usize>(
     Some(())
 }
 
+/// The four pixels of tap `t`'s footprint in the band (`stride` values per row, crop
+/// index `base` first), as lanes: top left, top right, bottom left, bottom right (the
+/// right ones are the left ones when `t.tx == 0`, the bottom ones the top ones when
+/// `t.ty == 0`). `None` if they are not in the band (a bug).
+#[inline(always)]
+fn footprint_lanes<const C: usize>(
+    band: &[f32],
+    stride: usize,
+    base: usize,
+    t: &Tap,
+) -> Option<[Lanes; 4]> {
+    let top = (t.at as usize).wrapping_sub(base).wrapping_mul(C);
+    let right = C * usize::from(t.tx > 0.0);
+    let down = stride * usize::from(t.ty > 0.0);
+    // Two bounds checks for the four reads (`right + 4 <= 8`).
+    let q0 = band.get(top..)?.first_chunk::<8>()?;
+    let q1 = band.get(top.wrapping_add(down)..)?.first_chunk::<8>()?;
+    Some([
+        lanes(q0, 0)?,
+        lanes(q0, right)?,
+        lanes(q1, 0)?,
+        lanes(q1, right)?,
+    ])
+}
+
 /// Four values of `band` from `at`.
 #[inline(always)]
 fn lanes(band: &[f32], at: usize) -> Option<Lanes> {
     band.get(at..)?.first_chunk::<4>().copied()
 }
 
-/// The pixels of one run, `taps`, into `out_row` from pixel `u0` on: bilinear from the
-/// band (`stride` values per row, crop pixel `(c0, r0)` first), in OpenCV's order, as
+/// The pixels of one run, `taps`, into `dst` (`C` values a pixel): bilinear from the
+/// band (`stride` values per row, crop index `base` first), in OpenCV's order, as
 /// [`crate::remap::Bilinear`]. With `CHECK_NAN`, a NaN in one channel makes every
-/// channel NaN. For 3 channels each pixel is stored as four lanes where the row has
-/// room: the fourth lands on the next pixel, which is written after it. `None` if a
-/// tap is not in the band (a bug).
+/// channel NaN. For 3 channels every pixel but the last is stored as four lanes: the
+/// fourth lands on the next pixel, written after it. `None` if a tap is not in the
+/// band (a bug) or `dst` is not the run's length.
 #[inline(always)]
 fn sample_run<const C: usize, const CHECK_NAN: bool>(
     band: &[f32],
     stride: usize,
-    (c0, r0): (usize, usize),
+    base: usize,
     taps: &[Tap],
-    out_row: &mut [f32],
-    u0: usize,
+    dst: &mut [f32],
 ) -> Option<()> {
-    for (k, t) in taps.iter().enumerate() {
-        let col = usize::from(t.col).wrapping_sub(c0);
-        let row = usize::from(t.row).wrapping_sub(r0);
-        let top = row.wrapping_mul(stride).wrapping_add(col.wrapping_mul(C));
-        let right = if t.tx > 0.0 { C } else { 0 };
-        let down = if t.ty > 0.0 { stride } else { 0 };
-        // One bounds check for the four reads.
-        let quad = band.get(top..)?.get(..down + right + 4)?;
-        let p00 = lanes(quad, 0)?;
-        let p01 = lanes(quad, right)?;
-        let p10 = lanes(quad, down)?;
-        let p11 = lanes(quad, down + right)?;
-        let v = lerp_lanes(lerp_lanes(p00, p01, t.tx), lerp_lanes(p10, p11, t.tx), t.ty);
-        let v = if CHECK_NAN && any_nan(&v, C) {
-            [f32::NAN; 4]
-        } else {
-            v
-        };
-        let at = (u0 + k) * C;
-        if C == 3
-            && let Some(dst) = out_row.get_mut(at..at + 4)
-        {
-            dst.copy_from_slice(&v);
-            continue;
+    let (last, init) = taps.split_last()?;
+    if C == 3 {
+        // Four lanes at pixel `k < n - 1` end at `3 k + 4 <= 3 (n - 1) + 1`.
+        let room = dst.get_mut(..init.len() * C + 1)?;
+        for (k, t) in init.iter().enumerate() {
+            let v = bilinear::<C, CHECK_NAN>(band, stride, base, t)?;
+            room.get_mut(k * C..k * C + 4)?.copy_from_slice(&v);
         }
-        out_row.get_mut(at..at + C)?.copy_from_slice(v.get(..C)?);
+    } else {
+        for (px, t) in dst.chunks_exact_mut(C).zip(init) {
+            let v = bilinear::<C, CHECK_NAN>(band, stride, base, t)?;
+            px.copy_from_slice(v.get(..C)?);
+        }
     }
+    let v = bilinear::<C, CHECK_NAN>(band, stride, base, last)?;
+    let at = init.len() * C;
+    dst.get_mut(at..at + C)?.copy_from_slice(v.get(..C)?);
     Some(())
+}
+
+/// The bilinear interpolation of tap `t` from the band, as [`sample_run`] computes it.
+#[inline(always)]
+fn bilinear<const C: usize, const CHECK_NAN: bool>(
+    band: &[f32],
+    stride: usize,
+    base: usize,
+    t: &Tap,
+) -> Option<Lanes> {
+    let [p00, p01, p10, p11] = footprint_lanes::<C>(band, stride, base, t)?;
+    let v = lerp_lanes(lerp_lanes(p00, p01, t.tx), lerp_lanes(p10, p11, t.tx), t.ty);
+    Some(if CHECK_NAN && any_nan(&v, C) {
+        [f32::NAN; 4]
+    } else {
+        v
+    })
 }
 
 /// [`gain_status`]: a gain of the pixel is 0 or NaN (its footprints are NaN).
@@ -630,10 +679,10 @@ fn build_view(
                         let e = used.get_mut(row).ok_or_else(bad)?;
                         *e = (e.0.min(c), e.1.max(c1));
                     }
-                    let (Ok(col), Ok(row)) = (u16::try_from(c), u16::try_from(r)) else {
+                    let Ok(at) = u32::try_from(r * w + c) else {
                         return Err(bad());
                     };
-                    taps.push(Tap { col, row, tx, ty });
+                    taps.push(Tap { at, tx, ty });
                     run_start.get_or_insert(u);
                 }
                 None => {
