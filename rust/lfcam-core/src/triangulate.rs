@@ -1560,7 +1560,13 @@ mod tests {
             .map(|i| [10.0 * (i % 4) as f64 - 10.0, 10.0 * (i / 4) as f64 - 10.0])
             .collect();
         let flows = vec![0.5f32; n * h * w * 2];
-        for bad in [(3, 1, 70), (0, 0, 3), (11, 1, 149), (7, 0, 64), (2, 1, 1100)] {
+        for bad in [
+            (3, 1, 70),
+            (0, 0, 3),
+            (11, 1, 149),
+            (7, 0, 64),
+            (2, 1, 1100),
+        ] {
             let mut weights = vec![1f32; n * h * w];
             let (v, y, x) = bad;
             weights[(v * h + y) * w + x] = -1.0;
