@@ -1,12 +1,13 @@
 //! Runtime CPU dispatch: a kernel's loops compiled a second time for AVX2, and run
 //! when the CPU has it (x86-64 only).
 //!
-//! The kernels vectorise by the compiler (no intrinsics; one exception below). The wheel targets baseline
-//! x86-64 (SSE2, 4 float lanes); most CPUs in use have AVX2 (8 lanes, three-operand
-//! instructions, blends). A kernel opts in by wrapping its per-task loop body, with
-//! everything it calls `#[inline(always)]`, in [`avx2_or_portable!`]: it expands to a
-//! function compiled with `#[target_feature(enable = "avx2")]` and a portable one, and
-//! picks the first when [`has_avx2`] says so. Floating-point results are identical
+//! The kernels vectorise by the compiler (no intrinsics, but for one exception below).
+//! The wheel targets baseline x86-64 (SSE2, 4 float lanes); most CPUs in use have AVX2
+//! (8 lanes, three-operand instructions, blends). A kernel opts in by wrapping its
+//! per-task loop body, with everything it calls `#[inline(always)]`, in
+//! [`avx2_or_portable!`]: it expands to a function compiled with
+//! `#[target_feature(enable = "avx2")]` and a portable one, and picks the first when
+//! [`has_avx2`] says so. Floating-point results are identical
 //! (Rust never contracts `a * b + c` into an FMA, and AVX2 does not change IEEE
 //! arithmetic); tests compare both paths.
 //!
@@ -15,10 +16,22 @@
 //! behaviour; [`has_avx2`] checks the CPU first (std's cached CPUID query). It is used
 //! through the macro (triangulate) and written out in `rectify::Job::segment`, whose
 //! generic parameters the macro does not take, and in `triangulate::rows_task`, which
-//! calls the few-view path `triangulate::avx2`: that one is written with `std::arch`
-//! intrinsics (safe to call in `#[target_feature(enable = "avx2")]` functions), because
-//! it keeps whole arrays of vectors in registers, which the compiler's vectoriser does
-//! not do for arrays of floats.
+//! calls the few-view paths `triangulate::avx2` and `triangulate::avx512` (after
+//! [`has_avx512`]): those are written with `std::arch` intrinsics (safe to call in
+//! `#[target_feature]` functions), because they keep whole arrays of vectors in
+//! registers, which the compiler's vectoriser does not do for arrays of floats.
+
+/// The `LFCAM_SIMD` environment variable (read once): `portable` forces the portable
+/// paths, `avx2` allows AVX2 but not AVX-512, for testing and comparison.
+#[cfg(target_arch = "x86_64")]
+fn simd_setting() -> &'static str {
+    use std::sync::OnceLock;
+    static SETTING: OnceLock<String> = OnceLock::new();
+    SETTING.get_or_init(|| {
+        std::env::var("LFCAM_SIMD")
+            .map_or_else(|_| String::new(), |v| v.trim().to_ascii_lowercase())
+    })
+}
 
 /// Whether this CPU runs AVX2 code (`false` off x86-64). `LFCAM_SIMD=portable` in the
 /// environment (read once) forces the portable path, for testing and comparison.
@@ -26,12 +39,22 @@
 pub fn has_avx2() -> bool {
     #[cfg(target_arch = "x86_64")]
     {
-        use std::sync::OnceLock;
-        static PORTABLE: OnceLock<bool> = OnceLock::new();
-        let portable = *PORTABLE.get_or_init(|| {
-            std::env::var("LFCAM_SIMD").is_ok_and(|v| v.trim().eq_ignore_ascii_case("portable"))
-        });
-        !portable && std::arch::is_x86_feature_detected!("avx2")
+        simd_setting() != "portable" && std::arch::is_x86_feature_detected!("avx2")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
+/// Whether this CPU runs AVX-512 (AVX512F) code (`false` off x86-64, and with
+/// `LFCAM_SIMD=portable` or `LFCAM_SIMD=avx2` in the environment).
+#[inline]
+pub fn has_avx512() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        !matches!(simd_setting(), "portable" | "avx2")
+            && std::arch::is_x86_feature_detected!("avx512f")
     }
     #[cfg(not(target_arch = "x86_64"))]
     {
