@@ -363,6 +363,7 @@ def fill_holes(
 def _fill_where(out: NDArray[np.float32], have: NDArray[np.bool_]) -> NDArray[np.float32]:
     """:func:`fill_holes` once ``have`` (the pixels with data) is known and ``out`` (the
     image, 0 elsewhere, ours to change) is prepared: fills ``out``'s holes in place."""
+    out = np.ascontiguousarray(out)
     hole = ~have
     if not hole.any() or not have.any():
         return out
@@ -370,7 +371,13 @@ def _fill_where(out: NDArray[np.float32], have: NDArray[np.bool_]) -> NDArray[np
     # the values filled in are kept aside and written once every level has read it.
     data = out
     mask = have.astype(np.float32)
+    h, w = mask.shape
     fills: list[tuple[tuple[slice, slice], NDArray[np.bool_], NDArray[np.float32]]] = []
+    # Holes spread over the whole frame: filled by flat index, pixel by pixel in the
+    # same (row-major) order as a boolean mask would take them, without full-frame
+    # mask passes.
+    flat_fills: list[tuple[NDArray[np.intp], NDArray[np.float32]]] = []
+    flat_hole = hole.reshape(-1)  # a view
     # Normalised convolution at sigma 1, 2, 4, 8 px; larger holes from a coarser
     # level (the same at a quarter or less of the resolution), then the mean.
     for sigma in (1.0, 2.0, 4.0, 8.0):
@@ -379,6 +386,16 @@ def _fill_where(out: NDArray[np.float32], have: NDArray[np.bool_]) -> NDArray[np
         for region, tile, inner in _hole_tiles(hole, sigma):
             num = cv2.GaussianBlur(data[region], (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
             den = cv2.GaussianBlur(mask[region], (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
+            if region == (slice(0, h), slice(0, w)):
+                left = np.flatnonzero(flat_hole)
+                d = den.reshape(-1)[left]
+                sel = d > 1e-3
+                idx = left[sel]
+                if idx.size:
+                    vals = num.reshape(h * w, -1)[idx] / d[sel][:, None]
+                    flat_fills.append((idx, vals))
+                    flat_hole[idx] = False
+                continue
             num = num.reshape(den.shape + data.shape[2:])[inner]
             den = den[inner]
             sub = hole[tile]  # a view: clearing it clears those holes in `hole`
@@ -387,7 +404,6 @@ def _fill_where(out: NDArray[np.float32], have: NDArray[np.bool_]) -> NDArray[np
                 fills.append((tile, ok, num[ok] / den[ok][:, None]))
                 sub &= ~ok
     if hole.any():
-        h, w = mask.shape
         small = (max(1, w // 16), max(1, h // 16))
         num = cv2.resize(data, small, interpolation=cv2.INTER_AREA).reshape(small[1], small[0], -1)
         den = cv2.resize(mask, small, interpolation=cv2.INTER_AREA)
@@ -399,6 +415,9 @@ def _fill_where(out: NDArray[np.float32], have: NDArray[np.bool_]) -> NDArray[np
         up = cv2.resize(coarse.astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
         rest = hole.copy()
         fills.append(((slice(0, h), slice(0, w)), rest, up.reshape(h, w, -1)[rest]))
+    flat_out = out.reshape(h * w, -1)  # a view (`out` is C-contiguous)
+    for idx, vals in flat_fills:
+        flat_out[idx] = vals
     for tile, ok, vals in fills:
         out[tile][ok] = vals
     return out

@@ -859,9 +859,12 @@ fn splat_band<const C: usize, const L: usize>(
     let nrows = out.rows(fine_w);
     // Rows of `stride` (even) pixels, pixel x at `x + ACC_PAD`.
     let stride = (fine_w + 2 * ACC_PAD).next_multiple_of(2);
-    acc.clear();
-    acc.resize(nrows * stride, [0f32; L]);
-    let acc = &mut acc[..];
+    // Grown once per task; zeroed with a fill (a memset) for each band.
+    if acc.len() < nrows * stride {
+        acc.resize(nrows * stride, [0f32; L]);
+    }
+    let acc = &mut acc[..nrows * stride];
+    acc.fill([0f32; L]);
     let r = if params.sigma > 0.0 {
         params.radius as i64
     } else {
@@ -1941,8 +1944,67 @@ fn btv_rows(job: &BtvStep<'_>, first: usize, out: &mut [f32]) -> Result<()> {
         for yy in y.saturating_sub(job.window)..=y {
             ensure_diffs(job, &mut sc, yy);
         }
-        sc.reg.fill(0.0);
         let here = sc.diffs.row(y);
+        let xrow = &job.x[y * row_len..(y + 1) * row_len];
+        let kk = 2.0 * job.lambda;
+        // Window 1 (four shifts) past the first row: the interior pixels in one pass,
+        // the four terms of each shift added in the order of the general passes below.
+        let fused = if let [s0, s1, s2, s3] = *job.shifts
+            && y >= 1
+            && w >= 3
+        {
+            let shifts = [s0, s1, s2, s3];
+            let planes: [&[f32]; 4] =
+                std::array::from_fn(|si| &here[si * row_len..(si + 1) * row_len]);
+            let prevs: [&[f32]; 4] = std::array::from_fn(|si| {
+                let (_, m, _) = shifts[si];
+                &sc.diffs.row(y - m)[si * row_len..(si + 1) * row_len]
+            });
+            // Interior elements [c, (w - 1) c): every shift's D_s(xx - l) exists there.
+            let (i0, i1) = (c, (w - 1) * c);
+            let wt: [f32; 4] = shifts.map(|(_, _, wt)| wt);
+            // prev_s[i - l_s c] for i in i0..i1, as slices aligned with the interior.
+            let back: [&[f32]; 4] = std::array::from_fn(|si| {
+                let l = shifts[si].0;
+                let s0 = (i0 as i64 - l * c as i64) as usize;
+                &prevs[si][s0..s0 + (i1 - i0)]
+            });
+            let here_i: [&[f32]; 4] = planes.map(|p| &p[i0..i1]);
+            for (k, ((o, &v), &gv)) in orow[i0..i1]
+                .iter_mut()
+                .zip(&xrow[i0..i1])
+                .zip(&sc.g[i0..i1])
+                .enumerate()
+            {
+                let mut r = 0.0f32;
+                for si in 0..4 {
+                    r += wt[si] * here_i[si][k];
+                    r -= wt[si] * back[si][k];
+                }
+                *o = v - job.step * (gv + kk * r);
+            }
+            true
+        } else {
+            false
+        };
+        if fused {
+            // The first and last pixel, term by term as the general passes add them.
+            for i in (0..c).chain((w - 1) * c..row_len) {
+                let xx = (i / c) as i64;
+                let mut r = 0.0f32;
+                for (si, &(l, m, wt)) in job.shifts.iter().enumerate() {
+                    r += wt * here[si * row_len + i];
+                    if y >= m && xx - l >= 0 && xx - l < w as i64 {
+                        let prev = sc.diffs.row(y - m);
+                        let j = (i as i64 - l * c as i64) as usize; // in the row: checked
+                        r -= wt * prev[si * row_len + j];
+                    }
+                }
+                orow[i] = xrow[i] - job.step * (sc.g[i] + kk * r);
+            }
+            continue;
+        }
+        sc.reg.fill(0.0);
         for (si, &(l, m, wt)) in job.shifts.iter().enumerate() {
             let plane = &here[si * row_len..(si + 1) * row_len];
             for (o, &v) in sc.reg.iter_mut().zip(plane) {
@@ -1961,8 +2023,6 @@ fn btv_rows(job: &BtvStep<'_>, first: usize, out: &mut [f32]) -> Result<()> {
                 *o -= wt * v;
             }
         }
-        let xrow = &job.x[y * row_len..(y + 1) * row_len];
-        let kk = 2.0 * job.lambda;
         for (((o, &v), &gv), &rv) in orow.iter_mut().zip(xrow).zip(&sc.g).zip(&sc.reg) {
             *o = v - job.step * (gv + kk * rv);
         }
