@@ -206,7 +206,10 @@ def _rectify_case(
 # 37.5 vs 64.1 = 0.58). Plan's taps as crop indices into a band of fixed stride, 4-lane
 # bilinear for every pixel but a run's last, band kept per worker: main's build against
 # branch rect2's, alternating processes, load 4.5-5: 0.548 / 0.534 -> 0.461 / 0.465
-# (lfcam 109.5 / 113.3 -> 86.6 / 85.2 ms, reused 84.6 -> 65.3 / 70.6 ms).
+# (lfcam 109.5 / 113.3 -> 86.6 / 85.2 ms, reused 84.6 -> 65.3 / 70.6 ms). Then the AVX2
+# kernel simd::bilinear_band (taps as parallel arrays, offsets 8 at a time, 2 pixels a
+# register), load 5.6-7.1, three alternating pairs: medians 0.533 / 0.548 / 0.587 ->
+# 0.402 / 0.387 / 0.431 (lfcam 122.9 / 149.1 / 78.6 -> 68.9 / 111.2 / 54.0 ms).
 @row("rectify")
 def rectify_bilinear(size: str) -> Case:
     # Issue 4's row: a capture's rectification with the calibration's prepared plan.

@@ -837,7 +837,7 @@ struct SplatBand<'a, 'o, const C: usize, const L: usize> {
 impl<const C: usize, const L: usize> simd::Avx2Kernel for SplatBand<'_, '_, C, L> {
     type Output = ();
     #[inline(always)]
-    fn run(self) {
+    fn run<const AVX2: bool>(self) {
         splat_band::<C, L>(self.job, self.band, self.acc, self.out);
     }
 }

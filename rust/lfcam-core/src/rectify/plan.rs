@@ -11,12 +11,16 @@
 //!
 //! A capture's rectification is then a stream over the plan: per task of rows, the
 //! gained raw pixels of the rows' footprint box into a buffer that stays in cache
-//! (`raw * scale * gains`, as [`rectify`]), then per row NaN fills of the runs without
-//! data and the bilinear interpolation of the others, in OpenCV's order of operations.
-//! No position arithmetic, no mask or bounds tests beyond the slice accesses, and no
-//! NaN tests when they cannot matter: an integer raw frame times finite gains below
-//! [`TAME`] has no NaN and no infinity, so neither has its interpolation. The output is
-//! bit for bit [`rectify`]'s.
+//! (`raw * scale * gains`, as [`rectify`]; one buffer per worker, kept from task to
+//! task), then per row NaN fills of the runs without data and the bilinear
+//! interpolation of the others, in OpenCV's order of operations. The buffer's rows are
+//! the crop's width apart, so a pixel's place in it follows from its crop index. No
+//! position arithmetic, no mask or bounds tests beyond the slice accesses, and no NaN
+//! tests when they cannot matter: an integer raw frame times finite gains below
+//! [`TAME`] has no NaN and no infinity, so neither has its interpolation. That case,
+//! with 3 or 4 channels on a CPU with AVX2, runs [`crate::simd::bilinear_band`] (eight
+//! pixels' offsets at a time, two pixels per register), the others a portable loop.
+//! The output is bit for bit [`rectify`]'s.
 //!
 //! [`rectify`]: super::rectify
 
@@ -27,16 +31,51 @@ use crate::error::{Error, Result};
 use crate::image::ImageView;
 use crate::parallel;
 use crate::remap::{Lanes, Linear, MAX_CHANNELS, any_nan, lerp_lanes};
-use crate::simd::Avx2Kernel;
+use crate::simd::{Avx2Kernel, BandTaps, bilinear_band};
 
-/// One rectified pixel with a value: the top-left pixel of its footprint, as its index
-/// `row * w + col` in the `w x h` crop, and its fractions along x and y (0: the
-/// footprint has one column, or one row).
-#[derive(Debug, Clone, Copy)]
-struct Tap {
-    at: u32,
-    tx: f32,
-    ty: f32,
+/// The rectified pixels with a value of a view, in order, as parallel vectors: the
+/// top-left pixel of each one's footprint, as its index `row * w + col` in the `w x h`
+/// crop, and its fractions along x and y (0: the footprint has one column, or one row).
+#[derive(Debug, Default)]
+struct Taps {
+    at: Vec<u32>,
+    tx: Vec<f32>,
+    ty: Vec<f32>,
+}
+
+impl Taps {
+    fn len(&self) -> usize {
+        self.at.len()
+    }
+
+    /// Taps `range`.
+    fn get(&self, range: std::ops::Range<usize>) -> Option<BandTaps<'_>> {
+        Some(BandTaps {
+            at: self.at.get(range.clone())?,
+            tx: self.tx.get(range.clone())?,
+            ty: self.ty.get(range)?,
+        })
+    }
+}
+
+/// The first `n` taps and the rest.
+#[inline(always)]
+fn split_taps(t: BandTaps<'_>, n: usize) -> Option<(BandTaps<'_>, BandTaps<'_>)> {
+    let (at0, at1) = t.at.split_at_checked(n)?;
+    let (tx0, tx1) = t.tx.split_at_checked(n)?;
+    let (ty0, ty1) = t.ty.split_at_checked(n)?;
+    Some((
+        BandTaps {
+            at: at0,
+            tx: tx0,
+            ty: ty0,
+        },
+        BandTaps {
+            at: at1,
+            tx: tx1,
+            ty: ty1,
+        },
+    ))
 }
 
 /// One rectified row of a view.
@@ -68,7 +107,7 @@ struct ViewPlan {
     rows: Vec<RowPlan>,
     /// `(first column, length)` of each run of pixels with a value.
     runs: Vec<(u32, u32)>,
-    taps: Vec<Tap>,
+    taps: Taps,
     /// One per crop row: the columns some footprint reads.
     gain_rows: Vec<GainRow>,
     gains: Vec<f32>,
@@ -215,7 +254,7 @@ impl RectifyPlan {
             .map(|v| {
                 v.rows.len() * size_of::<RowPlan>()
                     + v.runs.len() * size_of::<(u32, u32)>()
-                    + v.taps.len() * size_of::<Tap>()
+                    + v.taps.len() * (size_of::<u32>() + 2 * size_of::<f32>())
                     + v.gain_rows.len() * size_of::<GainRow>()
                     + v.gains.len() * size_of::<f32>()
             })
@@ -387,7 +426,13 @@ impl RectifyPlan {
 
     /// Rows `v0..` of one view into `out` (whole rows).
     #[inline(always)]
-    fn segment<T: RawSample, const C: usize, const G: usize, const CHECK_NAN: bool>(
+    fn segment<
+        T: RawSample,
+        const C: usize,
+        const G: usize,
+        const CHECK_NAN: bool,
+        const AVX2: bool,
+    >(
         &self,
         view: &ViewPlan,
         raw: &ImageView<'_, T>,
@@ -429,9 +474,12 @@ impl RectifyPlan {
                     .get_mut(done * C..u0 * C)
                     .ok_or_else(bad)?
                     .fill(f32::NAN);
-                let (run, tail) = taps.split_at_checked(len).ok_or_else(bad)?;
+                let (run, tail) = split_taps(taps, len).ok_or_else(bad)?;
                 let dst = out_row.get_mut(u0 * C..(u0 + len) * C).ok_or_else(bad)?;
-                sample_run::<C, CHECK_NAN>(band, stride, base, run, dst).ok_or_else(bad)?;
+                let simd = AVX2 && !CHECK_NAN && (C == 3 || C == 4);
+                if !simd || bilinear_band::<C>(band, stride, base, run, dst).is_none() {
+                    sample_run::<C, CHECK_NAN>(band, stride, base, run, dst).ok_or_else(bad)?;
+                }
                 taps = tail;
                 done = u0 + len;
             }
@@ -463,7 +511,7 @@ impl<T: RawSample, const C: usize, const G: usize> Avx2Kernel for Segment<'_, '_
     type Output = Result<()>;
 
     #[inline(always)]
-    fn run(self) -> Result<()> {
+    fn run<const AVX2: bool>(self) -> Result<()> {
         let Self {
             plan,
             view,
@@ -474,9 +522,9 @@ impl<T: RawSample, const C: usize, const G: usize> Avx2Kernel for Segment<'_, '_
         } = self;
         // Integer samples times tame gains are finite: no NaN to test for.
         if !T::INTEGER || view.wild {
-            plan.segment::<T, C, G, true>(view, raw, v0, out, scratch)
+            plan.segment::<T, C, G, true, AVX2>(view, raw, v0, out, scratch)
         } else {
-            plan.segment::<T, C, G, false>(view, raw, v0, out, scratch)
+            plan.segment::<T, C, G, false, AVX2>(view, raw, v0, out, scratch)
         }
     }
 }
@@ -485,9 +533,9 @@ impl<T: RawSample, const C: usize, const G: usize> Avx2Kernel for Segment<'_, '_
 /// bw`, rows `r0 .. r0 + bh`, `C` values each, crop pixel `(r, c)` at index
 /// `(r - r0) * w * C + c * C` (`w` the crop's width: a tap's place in the band follows
 /// from its crop index alone), where the plan keeps gains (every pixel a footprint
-/// reads); the others are left as they were (never read). At least 8 values of
-/// padding follow, so that two pixels' lanes can be read at any pixel. `None` if the
-/// plan and the frame disagree (a bug).
+/// reads); the others are left as they were (never read). A row and 8 values of
+/// padding follow, so that lanes past a pixel can be read anywhere. `None` if the plan
+/// and the frame disagree (a bug).
 #[inline(always)]
 fn fill_band<T: RawSample, const C: usize, const G: usize>(
     view: &ViewPlan,
@@ -497,7 +545,9 @@ fn fill_band<T: RawSample, const C: usize, const G: usize>(
     band: &mut Vec<f32>,
 ) -> Option<()> {
     let stride = view.crop.w * C;
-    let len = bh * stride + 8;
+    // A row more than the box: `simd::bilinear_band` wants `stride + C + 4` values
+    // after every footprint's top-left pixel.
+    let len = (bh + 1) * stride + 8;
     if band.len() < len {
         band.resize(len, 0.0);
     }
@@ -530,20 +580,22 @@ fn fill_band<T: RawSample, const C: usize, const G: usize>(
     Some(())
 }
 
-/// The four pixels of tap `t`'s footprint in the band (`stride` values per row, crop
-/// index `base` first), as lanes: top left, top right, bottom left, bottom right (the
-/// right ones are the left ones when `t.tx == 0`, the bottom ones the top ones when
-/// `t.ty == 0`). `None` if they are not in the band (a bug).
+/// The four pixels of tap `(at, tx, ty)`'s footprint in the band (`stride` values per
+/// row, crop index `base` first), as lanes: top left, top right, bottom left, bottom
+/// right (the right ones are the left ones when `tx == 0`, the bottom ones the top
+/// ones when `ty == 0`). `None` if they are not in the band (a bug).
 #[inline(always)]
 fn footprint_lanes<const C: usize>(
     band: &[f32],
     stride: usize,
     base: usize,
-    t: &Tap,
+    at: u32,
+    tx: f32,
+    ty: f32,
 ) -> Option<[Lanes; 4]> {
-    let top = (t.at as usize).wrapping_sub(base).wrapping_mul(C);
-    let right = C * usize::from(t.tx > 0.0);
-    let down = stride * usize::from(t.ty > 0.0);
+    let top = (at as usize).wrapping_sub(base).wrapping_mul(C);
+    let right = C * usize::from(tx > 0.0);
+    let down = stride * usize::from(ty > 0.0);
     // Two bounds checks for the four reads (`right + 4 <= 8`).
     let q0 = band.get(top..)?.first_chunk::<8>()?;
     let q1 = band.get(top.wrapping_add(down)..)?.first_chunk::<8>()?;
@@ -572,39 +624,46 @@ fn sample_run<const C: usize, const CHECK_NAN: bool>(
     band: &[f32],
     stride: usize,
     base: usize,
-    taps: &[Tap],
+    taps: BandTaps<'_>,
     dst: &mut [f32],
 ) -> Option<()> {
-    let (last, init) = taps.split_last()?;
+    let n = taps.at.len();
+    let (init, last) = split_taps(taps, n.checked_sub(1)?)?;
+    let tap = |t: BandTaps<'_>, k: usize| Some((*t.at.get(k)?, *t.tx.get(k)?, *t.ty.get(k)?));
+    let (at, tx, ty) = tap(last, 0)?;
+    let last = bilinear::<C, CHECK_NAN>(band, stride, base, at, tx, ty)?;
+    let init = init.at.iter().zip(init.tx).zip(init.ty);
     if C == 3 {
         // Four lanes at pixel `k < n - 1` end at `3 k + 4 <= 3 (n - 1) + 1`.
-        let room = dst.get_mut(..init.len() * C + 1)?;
-        for (k, t) in init.iter().enumerate() {
-            let v = bilinear::<C, CHECK_NAN>(band, stride, base, t)?;
+        let room = dst.get_mut(..(n - 1) * C + 1)?;
+        for (k, ((&at, &tx), &ty)) in init.enumerate() {
+            let v = bilinear::<C, CHECK_NAN>(band, stride, base, at, tx, ty)?;
             room.get_mut(k * C..k * C + 4)?.copy_from_slice(&v);
         }
     } else {
-        for (px, t) in dst.chunks_exact_mut(C).zip(init) {
-            let v = bilinear::<C, CHECK_NAN>(band, stride, base, t)?;
+        for (px, ((&at, &tx), &ty)) in dst.chunks_exact_mut(C).zip(init) {
+            let v = bilinear::<C, CHECK_NAN>(band, stride, base, at, tx, ty)?;
             px.copy_from_slice(v.get(..C)?);
         }
     }
-    let v = bilinear::<C, CHECK_NAN>(band, stride, base, last)?;
-    let at = init.len() * C;
-    dst.get_mut(at..at + C)?.copy_from_slice(v.get(..C)?);
+    let at = (n - 1) * C;
+    dst.get_mut(at..at + C)?.copy_from_slice(last.get(..C)?);
     Some(())
 }
 
-/// The bilinear interpolation of tap `t` from the band, as [`sample_run`] computes it.
+/// The bilinear interpolation of tap `(at, tx, ty)` from the band, as [`sample_run`]
+/// computes it.
 #[inline(always)]
 fn bilinear<const C: usize, const CHECK_NAN: bool>(
     band: &[f32],
     stride: usize,
     base: usize,
-    t: &Tap,
+    at: u32,
+    tx: f32,
+    ty: f32,
 ) -> Option<Lanes> {
-    let [p00, p01, p10, p11] = footprint_lanes::<C>(band, stride, base, t)?;
-    let v = lerp_lanes(lerp_lanes(p00, p01, t.tx), lerp_lanes(p10, p11, t.tx), t.ty);
+    let [p00, p01, p10, p11] = footprint_lanes::<C>(band, stride, base, at, tx, ty)?;
+    let v = lerp_lanes(lerp_lanes(p00, p01, tx), lerp_lanes(p10, p11, tx), ty);
     Some(if CHECK_NAN && any_nan(&v, C) {
         [f32::NAN; 4]
     } else {
@@ -644,7 +703,7 @@ fn build_view(
     let (w, h) = (crop.w, crop.h);
     let mut rows = Vec::with_capacity(maps.height());
     let mut runs = Vec::new();
-    let mut taps = Vec::new();
+    let mut taps = Taps::default();
     // Per crop row, the columns footprints read, inclusive; lo > hi for none.
     let mut used = vec![(usize::MAX, 0usize); h];
     let mut wild = false;
@@ -682,7 +741,9 @@ fn build_view(
                     let Ok(at) = u32::try_from(r * w + c) else {
                         return Err(bad());
                     };
-                    taps.push(Tap { at, tx, ty });
+                    taps.at.push(at);
+                    taps.tx.push(tx);
+                    taps.ty.push(ty);
                     run_start.get_or_insert(u);
                 }
                 None => {
@@ -719,7 +780,9 @@ fn build_view(
         kept_gains.extend_from_slice(span);
     }
     debug_assert!(kept_gains.len().is_multiple_of(g.max(1)));
-    taps.shrink_to_fit();
+    taps.at.shrink_to_fit();
+    taps.tx.shrink_to_fit();
+    taps.ty.shrink_to_fit();
     runs.shrink_to_fit();
     Ok(ViewPlan {
         crop,
