@@ -175,6 +175,9 @@ pub fn place_samples<'py>(
     })
 }
 
+/// Positions, values and weights, as [`Samples::slices`] gives them.
+type SampleSlices<'a> = (&'a [f32], &'a [f32], Option<&'a [f32]>);
+
 /// The samples of a shift-and-add call, borrowed and checked.
 struct Samples<'py> {
     pos: PyReadonlyArrayDyn<'py, f32>,
@@ -231,6 +234,20 @@ impl<'py> Samples<'py> {
             channels,
         })
     }
+
+    /// The positions, values and weights as contiguous slices.
+    fn slices(&self) -> PyResult<SampleSlices<'_>> {
+        let w = self
+            .weights
+            .as_ref()
+            .map(|w| c_slice(w, "weights"))
+            .transpose()?;
+        Ok((
+            c_slice(&self.pos, "positions")?,
+            c_slice(&self.val, "values")?,
+            w,
+        ))
+    }
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -280,13 +297,7 @@ pub fn shift_and_add<'py>(
         let fw = count(py, fine_width, "fine_width")?;
         let params = splat_params(py, factor, sigma, radius, iterations, huber, reject)?;
         let s = Samples::borrow(positions, values, weights)?;
-        let pos_s = c_slice(&s.pos, "positions")?;
-        let val_s = c_slice(&s.val, "values")?;
-        let w_s = s
-            .weights
-            .as_ref()
-            .map(|w| c_slice(w, "weights"))
-            .transpose()?;
+        let (pos_s, val_s, w_s) = s.slices()?;
         let c = s.channels;
         let sum = new_array::<f32>(py, &[fh, fw, c])?;
         let wsum = new_array::<f32>(py, &[fh, fw])?;
@@ -325,13 +336,7 @@ pub fn shift_and_add_mean<'py>(
         let fw = count(py, fine_width, "fine_width")?;
         let params = splat_params(py, factor, sigma, radius, iterations, huber, reject)?;
         let s = Samples::borrow(positions, values, weights)?;
-        let pos_s = c_slice(&s.pos, "positions")?;
-        let val_s = c_slice(&s.val, "values")?;
-        let w_s = s
-            .weights
-            .as_ref()
-            .map(|w| c_slice(w, "weights"))
-            .transpose()?;
+        let (pos_s, val_s, w_s) = s.slices()?;
         let c = s.channels;
         let mean = new_array::<f32>(py, &[fh, fw, c])?;
         let wsum = new_array::<f32>(py, &[fh, fw])?;
