@@ -1424,7 +1424,8 @@ fn estimate_at(
 /// Sample `k` (value `values[k*C..(k+1)*C]`, weight `weights[k]`, default 1; NaN or
 /// non-positive weights and NaN positions or values are skipped) at rectified position
 /// `positions[k] = (x, y)` lands at fine `(X, Y) = ((x + 0.5) r - 0.5, (y + 0.5) r -
-/// 0.5)`. With `sigma = 0` it adds to the nearest fine pixel (round half up); else to the pixels within `radius` of it, with Gaussian weights
+/// 0.5)`. With `sigma = 0` it adds to the nearest fine pixel (round half up); else to
+/// the pixels within `radius` of it, with Gaussian weights
 /// `exp(-|(U, V) - (X, Y)|^2 / (2 sigma^2))`. Writes `sum` `(fine_h, fine_w, C)`, the
 /// weighted sums `sum_k w_k g_k v_k`, and `wsum` `(fine_h, fine_w)`, `sum_k w_k g_k`.
 ///
