@@ -216,33 +216,13 @@ where
     T: Send,
     F: Fn(usize, &mut [T]) -> Result<()> + Sync + Send,
 {
-    if out.is_empty() {
-        return Ok(());
-    }
-    if row_len == 0 || !out.len().is_multiple_of(row_len) {
-        return Err(Error::invalid_argument(
-            "out",
-            format!(
-                "has {} elements, not a whole number of rows of {row_len}",
-                out.len()
-            ),
-        ));
-    }
-    let n_rows = out.len() / row_len;
-    let elem = std::mem::size_of::<T>().max(1);
-    let total_bytes = out.len().saturating_mul(elem);
-    let threads = num_threads();
-    let rows = rows_per_task(n_rows, row_len.saturating_mul(elem), threads)
-        .max(min_rows)
-        .min(n_rows);
-    // `1 <= rows <= n_rows`, so `rows * row_len <= out.len()`: no overflow, never 0.
-    let chunk = rows * row_len;
-    let task = |(i, rows_out): (usize, &mut [T])| body(i * rows, rows_out);
-    if run_serially(total_bytes, threads) {
-        out.chunks_mut(chunk).enumerate().try_for_each(task)
-    } else {
-        install(|| out.par_chunks_mut(chunk).enumerate().try_for_each(task))?
-    }
+    for_each_row_chunk_init(
+        out,
+        row_len,
+        min_rows,
+        || (),
+        |(), first, rows| body(first, rows),
+    )
 }
 
 /// [`for_each_row_chunk_min`] with per-worker state: `body(&mut state, first_row,

@@ -276,6 +276,28 @@ pub struct Outputs<'a> {
     pub n_used: &'a mut [u8],
 }
 
+impl<'a> Outputs<'a> {
+    /// The outputs split into consecutive pieces of `n` pixels each (the last may be
+    /// shorter), all five arrays alike: rows when `n` is the width.
+    pub(crate) fn chunks(self, n: usize) -> impl Iterator<Item = Outputs<'a>> {
+        self.parallax
+            .chunks_mut(n)
+            .zip(self.confidence.chunks_mut(n))
+            .zip(self.residual.chunks_mut(n))
+            .zip(self.perpendicular.chunks_mut(n))
+            .zip(self.n_used.chunks_mut(n))
+            .map(
+                |((((parallax, confidence), residual), perpendicular), n_used)| Outputs {
+                    parallax,
+                    confidence,
+                    residual,
+                    perpendicular,
+                    n_used,
+                },
+            )
+    }
+}
+
 /// A view that can contribute: not the reference, `|o| > 0`.
 #[derive(Debug, Clone, Copy)]
 struct UsedView {
@@ -1034,14 +1056,14 @@ impl Setup<'_> {
         out: Outputs<'_>,
     ) -> Result<()> {
         let w = self.width();
-        let rows = out
-            .parallax
-            .chunks_mut(w)
-            .zip(out.confidence.chunks_mut(w))
-            .zip(out.residual.chunks_mut(w))
-            .zip(out.perpendicular.chunks_mut(w))
-            .zip(out.n_used.chunks_mut(w));
-        for (k, ((((par, conf), res), perp), used)) in rows.enumerate() {
+        for (k, row) in out.chunks(w).enumerate() {
+            let Outputs {
+                parallax: par,
+                confidence: conf,
+                residual: res,
+                perpendicular: perp,
+                n_used: used,
+            } = row;
             let blocks = par
                 .chunks_mut(LANES)
                 .zip(conf.chunks_mut(LANES))
@@ -1197,25 +1219,9 @@ fn triangulate_with(
     let rows = parallel::rows_per_task(h, row_bytes, threads);
     let chunk = rows * w;
     let tasks: Vec<(usize, Outputs<'_>)> = out
-        .parallax
-        .chunks_mut(chunk)
-        .zip(out.confidence.chunks_mut(chunk))
-        .zip(out.residual.chunks_mut(chunk))
-        .zip(out.perpendicular.chunks_mut(chunk))
-        .zip(out.n_used.chunks_mut(chunk))
+        .chunks(chunk)
         .enumerate()
-        .map(
-            |(i, ((((parallax, confidence), residual), perpendicular), n_used))| {
-                let out = Outputs {
-                    parallax,
-                    confidence,
-                    residual,
-                    perpendicular,
-                    n_used,
-                };
-                (i * rows, out)
-            },
-        )
+        .map(|(i, out)| (i * rows, out))
         .collect();
     let m = setup.views.len();
     let body =
@@ -1413,26 +1419,8 @@ mod tests {
         let fs = ViewStack::new(&flows, [n, h, w, 2], "flows").unwrap();
         for weights in [None, Some(&frac), Some(&unit)] {
             let ws = weights.map(|v| ViewStack::new(v, [n, h, w, 1], "weights").unwrap());
-            let results = [Path::General, Path::Portable].map(|path| {
-                let px = h * w;
-                let (mut p, mut c, mut r, mut q) = (
-                    vec![0f32; px],
-                    vec![0f32; px],
-                    vec![0f32; px],
-                    vec![0f32; px],
-                );
-                let mut u = vec![0u8; px];
-                let out = Outputs {
-                    parallax: &mut p,
-                    confidence: &mut c,
-                    residual: &mut r,
-                    perpendicular: &mut q,
-                    n_used: &mut u,
-                };
-                triangulate_with(fs, ws, &offsets, reference, &Params::default(), out, path)
-                    .unwrap();
-                (p, c, r, q, u)
-            });
+            let results = [Path::General, Path::Portable]
+                .map(|path| run(fs, ws, &offsets, reference, &Params::default(), path).unwrap());
             let [a, b] = &results;
             // Equal as numbers (a zero's sign may differ), NaN where NaN.
             let same = |x: &[f32], y: &[f32]| {

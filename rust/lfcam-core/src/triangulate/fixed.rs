@@ -703,14 +703,14 @@ macro_rules! estimator {
             if buffer.0.len() < size {
                 buffer.0.resize(size, zero());
             }
-            let rows = out
-                .parallax
-                .chunks_mut(w)
-                .zip(out.confidence.chunks_mut(w))
-                .zip(out.residual.chunks_mut(w))
-                .zip(out.perpendicular.chunks_mut(w))
-                .zip(out.n_used.chunks_mut(w));
-            for (k, ((((par, conf), res), perp), used)) in rows.enumerate() {
+            for (k, row) in out.chunks(w).enumerate() {
+                let Outputs {
+                    parallax: par,
+                    confidence: conf,
+                    residual: res,
+                    perpendicular: perp,
+                    n_used: used,
+                } = row;
                 let y = first_row + k;
                 let segments = par
                     .chunks_mut(SEGMENT)
