@@ -93,6 +93,51 @@ def test_shift_and_add_parallel_equals_serial() -> None:
     np.testing.assert_array_equal(a[1], b[1])
 
 
+def test_shift_and_add_writes_into_out() -> None:
+    """``out=``: the same result, written into the caller's arrays (whatever they held,
+    NaN included: every element is overwritten), which are returned."""
+    rng = np.random.default_rng(11)
+    pos, val, w = _samples(rng, 50_000, 3, 120)
+    shape = (240, 250)
+    ref = shift_and_add(pos, val, shape, 2, weights=w, sigma=0.4, radius=1, iterations=1)
+    out = (np.full((*shape, 3), np.nan, np.float32), np.full(shape, np.nan, np.float32))
+    for _ in range(2):  # a second call into the same arrays
+        got = shift_and_add(
+            pos, val, shape, 2, weights=w, sigma=0.4, radius=1, iterations=1, out=out
+        )
+        assert got[0] is out[0]
+        assert got[1] is out[1]
+        np.testing.assert_array_equal(out[0], ref[0])
+        np.testing.assert_array_equal(out[1], ref[1])
+
+
+def test_shift_and_add_out_errors_name_the_argument() -> None:
+    pos = np.zeros((4, 2), np.float32)
+    val = np.zeros((4, 3), np.float32)
+    s, ws = np.zeros((4, 4, 3), np.float32), np.zeros((4, 4), np.float32)
+    bad = {
+        r"^out: expected a pair": s,
+        r"^out\[0\]: expected dtype float32, got float64": (s.astype(np.float64), ws),
+        r"^out\[1\]: expected shape \[4, 4\], got \[4, 5\]": (s, np.zeros((4, 5), np.float32)),
+        r"^out\[0\]: must be C-contiguous": (np.zeros((4, 4, 6), np.float32)[..., ::2], ws),
+        r"^out\[1\]: expected a numpy.ndarray, got list": (s, [[0.0] * 4] * 4),
+    }
+    for message, out in bad.items():
+        with pytest.raises(lfcam.InputError, match=message):
+            shift_and_add(pos, val, (4, 4), 2, out=out)
+    ro = ws.copy()
+    ro.flags.writeable = False
+    with pytest.raises(lfcam.InputError, match=r"^out\[1\]: cannot be written"):
+        shift_and_add(pos, val, (4, 4), 2, out=(s, ro))
+    # One array as both outputs, or an output that is an input.
+    s1 = np.zeros((4, 4, 1), np.float32)
+    with pytest.raises(lfcam.InputError, match=r"^out\[1\]: cannot be written"):
+        shift_and_add(pos, val[:, :1], (4, 4), 2, out=(s1, s1.reshape(4, 4)))
+    v = np.zeros((16, 1), np.float32)
+    with pytest.raises(lfcam.InputError, match=r"^out\[0\]: cannot be written"):
+        shift_and_add(np.zeros((16, 2), np.float32), v, (4, 4), 2, out=(v.reshape(4, 4, 1), ws))
+
+
 def test_shift_and_add_mean_is_the_fused_image() -> None:
     """The core's fused image equals shift_and_add's sum / wsum where wsum >= min_weight
     (exactly), 0 elsewhere, and says where it has data."""

@@ -149,8 +149,11 @@ def shift_and_add(
     iterations: int,
     huber: float,
     reject: float,
+    sum_out: NDArray[np.float32] | None = None,
+    wsum_out: NDArray[np.float32] | None = None,
 ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-    """Robust shift-and-add onto a fine grid: (sum (H, W, C), wsum (H, W))."""
+    """Robust shift-and-add onto a fine grid: (sum (H, W, C), wsum (H, W)), written
+    into sum_out / wsum_out when given."""
 
 def shift_and_add_mean(
     positions: NDArray[np.float32],

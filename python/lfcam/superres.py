@@ -263,6 +263,7 @@ def shift_and_add(
     iterations: int = 0,
     huber: float = 0.03,
     reject: float = 0.15,
+    out: tuple[NDArray[np.float32], NDArray[np.float32]] | None = None,
 ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """Robust shift-and-add of scattered samples onto an ``r``-times finer grid.
 
@@ -291,13 +292,19 @@ def shift_and_add(
         Robust passes.
     huber, reject : float
         Robust weighting (image units).
+    out : (sum, wsum), optional
+        C-contiguous float32 arrays of shapes ``(H, W, C)`` and ``(H, W)`` to write
+        the result into (every element is overwritten; their contents do not matter),
+        instead of fresh ones: for repeated calls, it saves the operating system's
+        zeroing of fresh pages (about a fifth of a 2x fusion of 1 Mpx on one thread).
 
     Returns
     -------
     sum : (H, W, C) float32
-        Weighted sums of the values.
+        Weighted sums of the values (``out[0]`` if given).
     wsum : (H, W) float32
-        Sums of the weights; ``sum / wsum[..., None]`` is the fused image.
+        Sums of the weights; ``sum / wsum[..., None]`` is the fused image (``out[1]``
+        if given).
 
     Examples
     --------
@@ -320,6 +327,9 @@ def shift_and_add(
         raise InputError(f"weights: expected shape {pos.shape[:-1]}, got {w.shape}")
     if len(shape) != 2 or min(shape) < 1:
         raise InputError(f"shape: expected a positive (H, W), got {shape!r}")
+    if out is not None and (not isinstance(out, tuple | list) or len(out) != 2):
+        raise InputError(f"out: expected a pair (sum, wsum) of arrays, got {type(out).__name__}")
+    sum_out, wsum_out = (None, None) if out is None else out
     return _lfcam.shift_and_add(
         pos,
         val,
@@ -332,6 +342,8 @@ def shift_and_add(
         int(iterations),
         float(huber),
         float(reject),
+        sum_out,
+        wsum_out,
     )
 
 

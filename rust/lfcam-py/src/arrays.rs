@@ -2,8 +2,8 @@
 
 use lfcam_core::ImageView;
 use numpy::{
-    Element, PyArrayDescrMethods, PyArrayDyn, PyArrayMethods, PyReadonlyArrayDyn, PyUntypedArray,
-    PyUntypedArrayMethods, dtype,
+    Element, PyArrayDescrMethods, PyArrayDyn, PyArrayMethods, PyReadonlyArrayDyn,
+    PyReadwriteArrayDyn, PyUntypedArray, PyUntypedArrayMethods, dtype,
 };
 use pyo3::prelude::*;
 use pyo3::sync::PyOnceLock;
@@ -176,28 +176,58 @@ pub fn output_array<'py, T: Element>(
     shape: &[usize],
     name: &str,
 ) -> PyResult<Bound<'py, PyArrayDyn<T>>> {
+    output_arg(py, out, shape, name, "out")
+}
+
+/// [`output_array`] for the output argument `arg` (named in errors: `"out[1]"`, ...).
+pub fn output_arg<'py, T: Element>(
+    py: Python<'py>,
+    out: Option<&Bound<'py, PyAny>>,
+    shape: &[usize],
+    name: &str,
+    arg: &str,
+) -> PyResult<Bound<'py, PyArrayDyn<T>>> {
     let Some(out) = out else {
         return new_array::<T>(py, shape);
     };
-    let arr = as_untyped(out, "out")?;
+    let arr = as_untyped(out, arg)?;
     if !arr.dtype().is_equiv_to(&dtype::<T>(py)) {
         return Err(input_error(
             py,
-            "out",
+            arg,
             format!("expected dtype {name}, got {}", dtype_name(arr)),
         ));
     }
     if arr.shape() != shape {
         return Err(input_error(
             py,
-            "out",
+            arg,
             format!("expected shape {shape:?}, got {:?}", arr.shape()),
         ));
     }
     if !arr.is_c_contiguous() {
-        return Err(input_error(py, "out", "must be C-contiguous"));
+        return Err(input_error(py, arg, "must be C-contiguous"));
     }
     Ok(arr.cast::<PyArrayDyn<T>>()?.clone())
+}
+
+/// `out` (from [`output_arg`]) borrowed for writing. A fresh array is always writeable;
+/// a caller's may be read-only or share memory with an input (which is borrowed
+/// read-only meanwhile) or another output: an error naming `arg`.
+pub fn writable<'py, T: Element>(
+    out: &Bound<'py, PyArrayDyn<T>>,
+    arg: &str,
+) -> PyResult<PyReadwriteArrayDyn<'py, T>> {
+    out.try_readwrite().map_err(|e| {
+        input_error(
+            out.py(),
+            arg,
+            format!(
+                "cannot be written ({e}): is it read-only, or does it share memory with an \
+                 input or another output?"
+            ),
+        )
+    })
 }
 
 /// Runs `kernel` on the elements of `out` (from [`output_array`]) with the GIL
@@ -208,17 +238,7 @@ where
     F: FnOnce(&mut [T]) -> lfcam_core::Result<()> + Send,
 {
     let py = out.py();
-    // A fresh array is always writeable; a caller's may be read-only or share memory
-    // with an input (which is borrowed read-only meanwhile).
-    let mut rw = out.try_readwrite().map_err(|e| {
-        input_error(
-            py,
-            "out",
-            format!(
-                "cannot be written ({e}): is it read-only, or does it share memory with an input?"
-            ),
-        )
-    })?;
+    let mut rw = writable(out, "out")?;
     let slice = rw
         .as_slice_mut()
         .map_err(|e| internal_error(py, function, format!("output slice: {e}")))?;

@@ -7,7 +7,7 @@ use numpy::{PyArrayDyn, PyArrayMethods, PyReadonlyArrayDyn, PyUntypedArrayMethod
 use pyo3::prelude::*;
 use pyo3::types::PyTuple;
 
-use crate::arrays::{c_slice, fill, new_array, rect_rows, typed};
+use crate::arrays::{c_slice, fill, new_array, output_arg, rect_rows, typed, writable};
 use crate::errors::{guarded, input_error, internal_error, to_pyerr};
 
 fn count(py: Python<'_>, value: i64, arg: &str) -> PyResult<usize> {
@@ -15,10 +15,12 @@ fn count(py: Python<'_>, value: i64, arg: &str) -> PyResult<usize> {
         .map_err(|_| input_error(py, arg, format!("expected an integer >= 0, got {value}")))
 }
 
-/// Runs `kernel` on two fresh outputs with the GIL released, inside lfcam's pool.
+/// Runs `kernel` on two outputs (fresh, or the caller's from [`output_arg`], named
+/// `args` in errors) with the GIL released, inside lfcam's pool.
 fn fill2<A, B, F>(
     a: &Bound<'_, PyArrayDyn<A>>,
     b: &Bound<'_, PyArrayDyn<B>>,
+    args: [&str; 2],
     function: &str,
     kernel: F,
 ) -> PyResult<()>
@@ -28,12 +30,8 @@ where
     F: FnOnce(&mut [A], &mut [B]) -> lfcam_core::Result<()> + Send,
 {
     let py = a.py();
-    let mut ra = a
-        .try_readwrite()
-        .map_err(|e| internal_error(py, function, format!("output borrow: {e}")))?;
-    let mut rb = b
-        .try_readwrite()
-        .map_err(|e| internal_error(py, function, format!("output borrow: {e}")))?;
+    let mut ra = writable(a, args[0])?;
+    let mut rb = writable(b, args[1])?;
     let sa = ra
         .as_slice_mut()
         .map_err(|e| internal_error(py, function, format!("output slice: {e}")))?;
@@ -103,7 +101,7 @@ pub fn invert_maps<'py>(
         let warps_s = c_slice(&warps_ro, "warps")?;
         let inv = new_array::<f32>(py, &[raw_h, raw_w, 2])?;
         let view = new_array::<i32>(py, &[raw_h, raw_w])?;
-        fill2(&inv, &view, "invert_maps", |a, b| {
+        fill2(&inv, &view, ["inv", "view"], "invert_maps", |a, b| {
             core::invert_maps(warps_s, masks_s, &rects, h, w, raw_h, raw_w, a, b)
         })?;
         PyTuple::new(py, [inv.into_any(), view.into_any()])
@@ -274,9 +272,10 @@ fn splat_params(
 ///
 /// positions: (..., 2) float32 rectified (x, y); values: (..., C) float32, C <= 4;
 /// weights: None or (...) float32. Returns (sum, wsum): (fine_h, fine_w, C) and
-/// (fine_h, fine_w) float32.
+/// (fine_h, fine_w) float32: fresh arrays, or sum_out / wsum_out (C-contiguous
+/// float32 of those shapes, every element overwritten) when given.
 #[pyfunction]
-#[pyo3(signature = (positions, values, weights, fine_height, fine_width, factor, sigma, radius, iterations, huber, reject))]
+#[pyo3(signature = (positions, values, weights, fine_height, fine_width, factor, sigma, radius, iterations, huber, reject, sum_out=None, wsum_out=None))]
 #[allow(clippy::too_many_arguments)]
 pub fn shift_and_add<'py>(
     py: Python<'py>,
@@ -291,6 +290,8 @@ pub fn shift_and_add<'py>(
     iterations: i64,
     huber: f64,
     reject: f64,
+    sum_out: Option<&Bound<'py, PyAny>>,
+    wsum_out: Option<&Bound<'py, PyAny>>,
 ) -> PyResult<Bound<'py, PyTuple>> {
     guarded(py, "shift_and_add", || {
         let fh = count(py, fine_height, "fine_height")?;
@@ -299,11 +300,15 @@ pub fn shift_and_add<'py>(
         let s = Samples::borrow(positions, values, weights)?;
         let (pos_s, val_s, w_s) = s.slices()?;
         let c = s.channels;
-        let sum = new_array::<f32>(py, &[fh, fw, c])?;
-        let wsum = new_array::<f32>(py, &[fh, fw])?;
-        fill2(&sum, &wsum, "shift_and_add", |sm, ws| {
-            core::shift_and_add(pos_s, val_s, w_s, c, fh, fw, &params, sm, ws)
-        })?;
+        let sum = output_arg::<f32>(py, sum_out, &[fh, fw, c], "float32", "out[0]")?;
+        let wsum = output_arg::<f32>(py, wsum_out, &[fh, fw], "float32", "out[1]")?;
+        fill2(
+            &sum,
+            &wsum,
+            ["out[0]", "out[1]"],
+            "shift_and_add",
+            |sm, ws| core::shift_and_add(pos_s, val_s, w_s, c, fh, fw, &params, sm, ws),
+        )?;
         PyTuple::new(py, [sum.into_any(), wsum.into_any()])
     })
 }
