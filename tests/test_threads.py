@@ -110,3 +110,56 @@ def test_forked_child_after_a_parallel_crop(restore_threads: None) -> None:
     assert child.exitcode == 0
     # The parent's pool still works.
     assert np.array_equal(lfcam.crop_lenslets(raw, rects), want)
+
+
+_MAIN_THREAD_JOINS = """
+import os, threading
+import numpy as np
+import lfcam
+
+def lfcam_threads():
+    names = []
+    for t in os.listdir("/proc/self/task"):
+        with open(f"/proc/self/task/{t}/comm") as f:
+            names.append(f.read().strip())
+    return sorted(n for n in names if n.startswith("lfcam-"))
+
+raw = np.random.default_rng(1).integers(0, 255, (1080, 1920, 3), dtype=np.uint8)
+rects = np.array([[c * 480, r * 360, 480, 360] for r in range(3) for c in range(4)])
+want = np.stack([raw[y : y + h, x : x + w] for x, y, w, h in rects])
+assert np.array_equal(lfcam.crop_lenslets(raw, rects), want)
+print("main", lfcam_threads())
+# Other threads use the ordinary pool, also while the main thread works.
+ok = []
+def other():
+    for _ in range(5):
+        ok.append(np.array_equal(lfcam.crop_lenslets(raw, rects), want))
+threads = [threading.Thread(target=other) for _ in range(2)]
+for t in threads:
+    t.start()
+for _ in range(5):
+    ok.append(np.array_equal(lfcam.crop_lenslets(raw, rects), want))
+for t in threads:
+    t.join()
+print("all", len(ok), all(ok), lfcam_threads())
+"""
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/task"), reason="Linux only")
+def test_main_thread_takes_part_and_other_threads_use_the_pool() -> None:
+    # 2 threads: the main thread is worker 0 of its pool, which starts one more
+    # ("lfcam-1"); calls from other threads go to the ordinary pool ("lfcam-0",
+    # "lfcam-1"), and everyone gets the same result, concurrently too.
+    env = {**os.environ, "LFCAM_NUM_THREADS": "2"}
+    out = subprocess.run(
+        [sys.executable, "-c", _MAIN_THREAD_JOINS],
+        env=env,
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=120,
+    ).stdout.splitlines()
+    assert out == [
+        "main ['lfcam-1']",
+        "all 15 True ['lfcam-0', 'lfcam-1', 'lfcam-1']",
+    ]

@@ -7,6 +7,26 @@
 //! when the pool is first needed) threads if that is set to a positive integer, else
 //! one per available core. [`set_num_threads`] replaces it.
 //!
+//! # The calling thread takes part
+//! On Linux, calls from the process's main thread (where Python runs) use a second
+//! pool of the same size in which that thread is worker 0 ([`ThreadPoolBuilder::
+//! use_current_thread`]): it works on its own job instead of handing it over and
+//! sleeping until the job is done, as OpenMP's and OpenCV's calling threads do. A
+//! hand-over makes the scheduler wake every worker at once on whichever cores look
+//! idle, and the caller's own core idles: on the 2-core dev machine, a parallel
+//! kernel called right after single-threaded numpy work (so, the second core idle)
+//! took about as long as on one thread, with both workers time-sharing one core for
+//! the first ~8 ms (`perf sched timehist`). With the main thread taking part, in
+//! `benchmarks/run.py`'s harness (which alternates each lfcam call with a
+//! single-threaded reference call), 3 alternating processes each, full size, 2
+//! threads: shift-and-add 15.5-23.4 -> 10.7-13.7 ms, crop 5.2-7.1 -> 3.4-4.4 ms;
+//! rectify, remap, triangulate, super-resolve, rasterize unchanged within noise. The
+//! main thread joins one such
+//! pool for good (rayon cannot take it out again); if the thread count changes
+//! afterwards, the main thread's calls use the ordinary pool of the new size, and the
+//! first one again when the count returns to it. Other threads always use the
+//! ordinary pool, whose callers block while its workers run the job.
+//!
 //! # Fork safety
 //! After `fork()` (Python's `multiprocessing` with the `fork` start method) the child
 //! has a copy of the pool's bookkeeping but none of its threads: a job sent to it would
@@ -56,11 +76,15 @@ struct State {
     /// The thread count the next pool will have; `None` until first resolved.
     num_threads: Option<usize>,
     pool: Option<Pool>,
+    /// The pool the main thread is worker 0 of, and its size (built on the main
+    /// thread's first call; never replaced).
+    home: Option<(Pool, usize)>,
 }
 
 static STATE: Mutex<State> = Mutex::new(State {
     num_threads: None,
     pool: None,
+    home: None,
 });
 
 fn lock() -> MutexGuard<'static, State> {
@@ -155,7 +179,8 @@ pub fn set_num_threads(n: usize) -> Result<()> {
 
 /// Runs `f` inside lfcam's pool (building it if needed, and rebuilding it in a forked
 /// child), so that rayon parallel iterators in `f` use that pool. Called from a worker
-/// of the pool, it runs `f` directly.
+/// of the pool, it runs `f` directly; called from the main thread, it runs `f` there,
+/// in the pool that thread takes part in (see the module notes).
 ///
 /// # Errors
 /// [`Error::InvalidArgument`] (argument `"n"`) if the pool has to be built and the
@@ -165,8 +190,59 @@ where
     F: FnOnce() -> R + Send,
     R: Send,
 {
+    if let Some(home) = home_pool() {
+        // The calling thread is one of this pool's workers: `f` runs right here.
+        return Ok(home.install(f));
+    }
     let pool = current_pool()?;
     Ok(pool.install(f))
+}
+
+/// The pool the calling thread takes part in, if it is the process's main thread and
+/// that pool has the current thread count (built now if the main thread is in no pool
+/// yet); `None` otherwise, and whenever that pool cannot be built.
+fn home_pool() -> Option<Arc<ThreadPool>> {
+    let mut state = lock();
+    let n = *state.num_threads.get_or_insert_with(default_num_threads);
+    let pid = std::process::id();
+    if let Some((home, size)) = state.home.as_ref().filter(|(h, _)| h.pid == pid) {
+        // Also true in the pool's other workers (a nested call runs inline there).
+        let member = home.pool.current_thread_index().is_some();
+        return (member && *size == n).then(|| Arc::clone(&home.pool));
+    }
+    // In a pool already (another pool's worker, or a forked child's main thread, which
+    // inherited its parent's membership), or not the main thread.
+    if rayon::current_thread_index().is_some() || !is_main_thread() {
+        return None;
+    }
+    let pool = ThreadPoolBuilder::new()
+        .num_threads(n)
+        .thread_name(|i| format!("lfcam-{i}"))
+        .use_current_thread()
+        .build()
+        .ok()?;
+    let home = Pool {
+        pool: Arc::new(pool),
+        pid,
+    };
+    let pool = Arc::clone(&home.pool);
+    state.home = Some((home, n));
+    Some(pool)
+}
+
+/// Whether the calling thread is the process's main thread (on Linux: its thread id
+/// is the process id, read from `/proc/thread-self`; elsewhere: never, so every call
+/// uses the ordinary pool).
+fn is_main_thread() -> bool {
+    thread_local! {
+        static MAIN: bool = std::fs::read_link("/proc/thread-self").is_ok_and(|link| {
+            // "<pid>/task/<tid>"
+            link.file_name()
+                .and_then(|tid| tid.to_str())
+                .is_some_and(|tid| tid == std::process::id().to_string())
+        });
+    }
+    MAIN.with(|m| *m)
 }
 
 /// Rows per task for `n_rows` rows of `row_bytes` bytes on `threads` threads: about
