@@ -22,10 +22,12 @@
 //! threads: shift-and-add 15.5-23.4 -> 10.7-13.7 ms, crop 5.2-7.1 -> 3.4-4.4 ms;
 //! rectify, remap, triangulate, super-resolve, rasterize unchanged within noise. The
 //! main thread joins one such
-//! pool for good (rayon cannot take it out again); if the thread count changes
-//! afterwards, the main thread's calls use the ordinary pool of the new size, and the
-//! first one again when the count returns to it. Other threads always use the
-//! ordinary pool, whose callers block while its workers run the job.
+//! pool for good (rayon cannot take it out again), so it is built only for 2 threads
+//! or more; if the thread count changes afterwards, the main thread's calls use the
+//! ordinary pool of the new size, and the first one again when the count returns to
+//! it. Other threads always use the ordinary pool, whose callers block while its
+//! workers run the job. (Rust tests run on spawned threads: this path is tested from
+//! Python, `tests/test_threads.py`.)
 //!
 //! # Fork safety
 //! After `fork()` (Python's `multiprocessing` with the `fork` start method) the child
@@ -33,8 +35,12 @@
 //! wait forever. The pool therefore remembers the id of the process that built it, and
 //! [`install`] in another process builds a fresh pool for that process. The stale pool
 //! is leaked ([`std::mem::forget`]), never dropped: dropping it would talk to threads
-//! that do not exist in the child. (The only remaining hazard is a fork taken while
-//! another thread holds this module's lock, which is held for microseconds.)
+//! that do not exist in the child. A child forked from the main thread inherits its
+//! membership of the parent's home pool (copied, threads gone); its calls run in the
+//! child's pool from a scoped helper thread, so that they never wait on that copy's
+//! locks, one of which a parent worker may have held at the fork. (The only remaining
+//! hazard is a fork taken while another thread holds this module's lock, which is
+//! held for microseconds.)
 //!
 //! # Chunking
 //! [`for_each_row_chunk`] splits an output made of equal-length rows into tasks of
@@ -190,44 +196,85 @@ where
     F: FnOnce() -> R + Send,
     R: Send,
 {
-    if let Some(home) = home_pool() {
+    match home_pool() {
         // The calling thread is one of this pool's workers: `f` runs right here.
-        return Ok(home.install(f));
+        Home::Member(home) => return Ok(home.install(f)),
+        Home::Inherited => {
+            // A forked child's main thread, still registered in its copy of the
+            // parent's pool, whose threads do not exist here: waiting there would touch
+            // that copy's locks (one may have been copied locked). The call goes to
+            // this process's pool from a fresh thread instead.
+            let pool = current_pool()?;
+            return std::thread::scope(|s| s.spawn(|| pool.install(f)).join())
+                .map_err(|panic| std::panic::resume_unwind(panic));
+        }
+        Home::No => {}
     }
     let pool = current_pool()?;
     Ok(pool.install(f))
 }
 
-/// The pool the calling thread takes part in, if it is the process's main thread and
-/// that pool has the current thread count (built now if the main thread is in no pool
-/// yet); `None` otherwise, and whenever that pool cannot be built.
-fn home_pool() -> Option<Arc<ThreadPool>> {
+/// What [`home_pool`] found.
+enum Home {
+    /// The calling thread is a worker of the pool the main thread takes part in, which
+    /// has the current thread count.
+    Member(Arc<ThreadPool>),
+    /// The calling thread is a worker of a pool inherited through `fork()`.
+    Inherited,
+    /// Neither: the ordinary pool.
+    No,
+}
+
+/// The pool the calling thread takes part in, if it is the process's main thread, the
+/// thread count is at least 2 and that pool has it (built now if the main thread is in
+/// no pool yet; if it cannot be built, the ordinary pool serves).
+fn home_pool() -> Home {
     let mut state = lock();
     let n = *state.num_threads.get_or_insert_with(default_num_threads);
     let pid = std::process::id();
     if let Some((home, size)) = state.home.as_ref().filter(|(h, _)| h.pid == pid) {
         // Also true in the pool's other workers (a nested call runs inline there).
         let member = home.pool.current_thread_index().is_some();
-        return (member && *size == n).then(|| Arc::clone(&home.pool));
+        return if member && *size == n {
+            Home::Member(Arc::clone(&home.pool))
+        } else {
+            Home::No
+        };
     }
-    // In a pool already (another pool's worker, or a forked child's main thread, which
-    // inherited its parent's membership), or not the main thread.
-    if rayon::current_thread_index().is_some() || !is_main_thread() {
-        return None;
+    // A home pool here is one inherited through `fork()`.
+    if let Some((inherited, _)) = &state.home
+        && inherited.pool.current_thread_index().is_some()
+    {
+        return Home::Inherited;
     }
-    let pool = ThreadPoolBuilder::new()
+    // A worker of an ordinary pool (a nested call): it stays in its pool.
+    if rayon::current_thread_index().is_some() {
+        return Home::No;
+    }
+    // One thread: the ordinary pool, so that the main thread is still free to take
+    // part in a pool of the default size later (it can join only one).
+    if n < 2 || !is_main_thread() {
+        return Home::No;
+    }
+    let Ok(pool) = ThreadPoolBuilder::new()
         .num_threads(n)
         .thread_name(|i| format!("lfcam-{i}"))
         .use_current_thread()
         .build()
-        .ok()?;
+    else {
+        return Home::No;
+    };
     let home = Pool {
         pool: Arc::new(pool),
         pid,
     };
     let pool = Arc::clone(&home.pool);
-    state.home = Some((home, n));
-    Some(pool)
+    // One inherited through `fork()` (by a thread that was not the parent's main
+    // thread) is leaked, not dropped: see [`retire`].
+    if let Some((old, _)) = state.home.replace((home, n)) {
+        retire(Some(old));
+    }
+    Home::Member(pool)
 }
 
 /// Whether the calling thread is the process's main thread (on Linux: its thread id
