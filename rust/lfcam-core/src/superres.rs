@@ -2519,6 +2519,8 @@ mod tests {
         for &(c, factor, sigma, radius, iterations, scan) in &[
             (3usize, 2.0f32, 0.4f32, 1usize, 1usize, true),
             (3, 2.0, 0.4, 1, 0, false),
+            // An odd fine width (31): the read-out's last pixel comes alone.
+            (3, 1.0, 0.4, 1, 0, true),
             (1, 3.0, 0.0, 0, 1, true),
             (2, 1.0, 0.35, 1, 2, false),
             (4, 2.0, 0.5, 1, 1, true),
@@ -2568,8 +2570,9 @@ mod tests {
             };
             for weights in [None, Some(&wts[..])] {
                 let (ws_ref, wsum_ref) = splat_naive(&pos, &val, weights, c, fh, fw, &p);
-                let mut sum = vec![0f32; fh * fw * c];
-                let mut ws = vec![0f32; fh * fw];
+                // NaN: an element the fusion does not write would show.
+                let mut sum = vec![f32::NAN; fh * fw * c];
+                let mut ws = vec![f32::NAN; fh * fw];
                 shift_and_add(&pos, &val, weights, c, fh, fw, &p, &mut sum, &mut ws).unwrap();
                 let same =
                     |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits());
