@@ -470,10 +470,10 @@ def _sr_inputs(size: str) -> dict[str, Any]:
     return {"raw": raw, "cal": cal, "parallax": s}
 
 
-# super_resolve 2x: issue 6's target is <= 1.5 s on 2 cores; not met yet. Idle machine
-# before this work: 8154 ms. Same run, main's build against branch sr's, alternating
-# processes at load 10-17 on the shared 2-core machine: wall 31.4 / 28.3 s -> 16.5 /
-# 15.7 s, CPU 14.8 / 14.0 s -> 8.0 / 7.8 s (about 1.8x less CPU).
+# super_resolve 2x: issue 6's target is <= 1.5 s on 2 cores: 0.91-0.95 s (session 6).
+# Idle machine before the first work on it: 8154 ms. Same run, main's build against
+# branch sr's, alternating processes at load 10-17 on the shared 2-core machine: wall
+# 31.4 / 28.3 s -> 16.5 / 15.7 s, CPU 14.8 / 14.0 s -> 8.0 / 7.8 s (1.8x less CPU).
 @row("super_resolve 2x")
 def superres_2x(size: str) -> Case:
     from lfcam.superres import inverse_maps
@@ -496,6 +496,11 @@ def superres_2x(size: str) -> Case:
     )
 
 
+# shift_and_add: issue 6's target is >= 50x np.add.at (lfcam/ref <= 0.02). Session 6,
+# 6 runs of both rows, --repeats 11: into arrays allocated once 13.1-16.4 ms against
+# 738-1044 ms (56-64x); fresh arrays 12.8-20.2 ms against 713-964 ms (46-56x). Before
+# the main thread took part in its calls (parallel.rs), the same harness gave
+# 15.5-23.4 ms (out=, 3 alternating processes; 10.7-13.7 ms after).
 def _splat_case(size: str, reuse: bool) -> Case:
     """The fusion core alone: one view's worth of samples (1.08 Mpx full size) splatted
     with a 3 x 3 Gaussian kernel onto the 2x grid, against the same with np.add.at.
