@@ -521,15 +521,18 @@ def _splat_case(size: str, reuse: bool) -> Case:
     pos = np.ascontiguousarray(pos, np.float32)
     val = rng.random((m, 3), dtype=np.float32)
     shape, factor, sigma = (2 * rh, 2 * rw), 2, 0.4
-    ours = (np.empty((*shape, 3), np.float32), np.empty(shape, np.float32)) if reuse else None
-    theirs = (np.empty((*shape, 3), np.float32), np.empty(shape, np.float32))
+    ours, theirs = (
+        [(np.empty((*shape, 3), np.float32), np.empty(shape, np.float32)) for _ in range(2)]
+        if reuse
+        else (None, None)
+    )
 
     def numpy_add_at() -> tuple[np.ndarray, np.ndarray]:
         fx = (pos[:, 0] + 0.5) * factor - 0.5
         fy = (pos[:, 1] + 0.5) * factor - 0.5
         xc = np.floor(fx + 0.5)
         yc = np.floor(fy + 0.5)
-        if reuse:
+        if theirs is not None:
             sums, wsum = theirs
             sums.fill(0)
             wsum.fill(0)

@@ -687,15 +687,6 @@ impl Scratch {
     }
 }
 
-/// One block's outputs.
-struct BlockOut<'b> {
-    parallax: &'b mut [f32],
-    confidence: &'b mut [f32],
-    residual: &'b mut [f32],
-    perpendicular: &'b mut [f32],
-    n_used: &'b mut [u8],
-}
-
 /// The per-view quantities of `view` at one block: `s_i`, `a_i`, `w_i`, `q_i^2` for
 /// `flow` (`len` vectors) and `weights`; in unusable lanes (and lanes past `len`), 0
 /// and `q_i^2` = +inf.
@@ -938,7 +929,7 @@ impl Setup<'_> {
 
     /// The outputs at the final `s_cur` (after a final [`Self::pass`]).
     #[inline(always)]
-    fn finish(&self, sc: &Scratch, out: BlockOut<'_>) {
+    fn finish(&self, sc: &Scratch, out: Outputs<'_>) {
         let mut n = [0f32; LANES];
         let mut sum_b = [0f32; LANES];
         let mut sum_br = [0f32; LANES];
@@ -1023,7 +1014,7 @@ impl Setup<'_> {
         sc: &mut Scratch,
         y: usize,
         x0: usize,
-        out: BlockOut<'_>,
+        out: Outputs<'_>,
     ) -> Result<()> {
         let len = out.parallax.len();
         let (any, unit) = self.gather(sc, y, x0, len)?;
@@ -1057,30 +1048,8 @@ impl Setup<'_> {
     ) -> Result<()> {
         let w = self.width();
         for (k, row) in out.chunks(w).enumerate() {
-            let Outputs {
-                parallax: par,
-                confidence: conf,
-                residual: res,
-                perpendicular: perp,
-                n_used: used,
-            } = row;
-            let blocks = par
-                .chunks_mut(LANES)
-                .zip(conf.chunks_mut(LANES))
-                .zip(res.chunks_mut(LANES))
-                .zip(perp.chunks_mut(LANES))
-                .zip(used.chunks_mut(LANES));
-            for (b, ((((parallax, confidence), residual), perpendicular), n_used)) in
-                blocks.enumerate()
-            {
-                let out = BlockOut {
-                    parallax,
-                    confidence,
-                    residual,
-                    perpendicular,
-                    n_used,
-                };
-                self.block::<AVX2>(sc, first_row + k, b * LANES, out)?;
+            for (b, block) in row.chunks(LANES).enumerate() {
+                self.block::<AVX2>(sc, first_row + k, b * LANES, block)?;
             }
         }
         Ok(())

@@ -3,7 +3,7 @@
 
 use lfcam_core::parallel;
 use lfcam_core::superres::{self as core, BtvParams, PlaceParams, SplatParams};
-use numpy::{PyArrayDyn, PyArrayMethods, PyReadonlyArrayDyn, PyUntypedArrayMethods};
+use numpy::{PyArrayDyn, PyReadonlyArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::PyTuple;
 
@@ -346,15 +346,9 @@ pub fn shift_and_add_mean<'py>(
         let mean = new_array::<f32>(py, &[fh, fw, c])?;
         let wsum = new_array::<f32>(py, &[fh, fw])?;
         let have = new_array::<bool>(py, &[fh, fw])?;
-        let mut ra = mean
-            .try_readwrite()
-            .map_err(|e| internal_error(py, "shift_and_add_mean", format!("output borrow: {e}")))?;
-        let mut rb = wsum
-            .try_readwrite()
-            .map_err(|e| internal_error(py, "shift_and_add_mean", format!("output borrow: {e}")))?;
-        let mut rc = have
-            .try_readwrite()
-            .map_err(|e| internal_error(py, "shift_and_add_mean", format!("output borrow: {e}")))?;
+        let mut ra = writable(&mean, "mean")?;
+        let mut rb = writable(&wsum, "wsum")?;
+        let mut rc = writable(&have, "have")?;
         let slice_err = |e| internal_error(py, "shift_and_add_mean", format!("output slice: {e}"));
         let m_s = ra.as_slice_mut().map_err(slice_err)?;
         let ws_s = rb.as_slice_mut().map_err(slice_err)?;

@@ -704,21 +704,15 @@ macro_rules! estimator {
                 buffer.0.resize(size, zero());
             }
             for (k, row) in out.chunks(w).enumerate() {
-                let Outputs {
-                    parallax: par,
-                    confidence: conf,
-                    residual: res,
-                    perpendicular: perp,
-                    n_used: used,
-                } = row;
                 let y = first_row + k;
-                let segments = par
-                    .chunks_mut(SEGMENT)
-                    .zip(conf.chunks_mut(SEGMENT))
-                    .zip(res.chunks_mut(SEGMENT))
-                    .zip(perp.chunks_mut(SEGMENT))
-                    .zip(used.chunks_mut(SEGMENT));
-                for (c, ((((par, conf), res), perp), used)) in segments.enumerate() {
+                for (c, segment) in row.chunks(SEGMENT).enumerate() {
+                    let Outputs {
+                        parallax: par,
+                        confidence: conf,
+                        residual: res,
+                        perpendicular: perp,
+                        n_used: used,
+                    } = segment;
                     let (x0, len) = (c * SEGMENT, par.len());
                     let groups = buffer
                         .0
