@@ -497,10 +497,11 @@ def superres_2x(size: str) -> Case:
 
 
 # shift_and_add: issue 6's target is >= 50x np.add.at (lfcam/ref <= 0.02). Session 6,
-# 6 runs of both rows, --repeats 11: into arrays allocated once 13.1-16.4 ms against
-# 738-1044 ms (56-64x); fresh arrays 12.8-20.2 ms against 713-964 ms (46-56x). Before
-# the main thread took part in its calls (parallel.rs), the same harness gave
-# 15.5-23.4 ms (out=, 3 alternating processes; 10.7-13.7 ms after).
+# 11 runs of both rows, --repeats 11: into arrays allocated once 13.0-16.4 ms against
+# 738-1044 ms (49.7-64x, median 56x; 10 runs of 11 >= 50x); fresh arrays 12.8-20.2 ms
+# against 713-1046 ms (43-57x, median 49x). Before the main thread took part in its
+# calls (parallel.rs), the same harness gave 15.5-23.4 ms (out=, 3 alternating
+# processes; 10.7-13.7 ms after).
 def _splat_case(size: str, reuse: bool) -> Case:
     """The fusion core alone: one view's worth of samples (1.08 Mpx full size) splatted
     with a 3 x 3 Gaussian kernel onto the 2x grid, against the same with np.add.at.
