@@ -1,22 +1,22 @@
-"""The optical flow alone: DIS settings against Middlebury's ground truth (issues 4, 5).
+"""The optical flow alone: DIS settings against Middlebury's ground truth.
 
     python benchmarks/flow_tuning.py [--data DIR] [--repeats N]
 
 lfcam computes flow with OpenCV's DIS on locally contrast-normalised 8-bit images
-(:func:`lfcam.flow.prepare`). This scores candidate settings by the average
+(:func:`lfcam.kernels.flow.prepare`). This scores candidate settings by the average
 end-point error (EPE, px) against the ground truth of the Middlebury "other"
 sequences (``../shared/data/middlebury_flow_other``, read in place), beside
 OpenCV's presets on plain grey images, with the median time per flow. The
 depth-level effect of the same settings is in ``benchmarks/hci.py``.
 
-Chosen for depth (``lfcam.depth.DEPTH_FLOW``): finest scale 0, 8 px patches,
+Chosen for depth (``lfcam.processing.depth.DEPTH_FLOW``): finest scale 0, 8 px patches,
 stride 3, 25 gradient-descent and 5 variational iterations. Sub-pixel precision is
 what depth needs (0.07 px BadPix on HCI); the finest scale is what buys it: the
 same settings at finest scale 1 (OpenCV's MEDIUM) are 4x faster but give 24% BadPix
 on HCI antinous 3 x 4 instead of 9.5%, and variational refinement at full
 resolution after a scale-1 DIS recovers only part of it (18-19%). Views much
 larger than HCI's (the full-size camera's 1200 x 900) are sampled finely enough for
-half resolution: ``lfcam.depth.depth_flow`` picks the finest scale by the flow
+half resolution: ``lfcam.DepthParams.flow_for`` picks the finest scale by the flow
 window's size (``FLOW_MAX_PIXELS``).
 """
 
@@ -32,9 +32,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from lfcam.depth import DEPTH_FLOW
-from lfcam.flow import FlowParams, dis_flow, end_point_error, prepare
 from lfcam.io import read_flo
+from lfcam.kernels.flow import FlowParams, dis_flow, end_point_error, prepare
+from lfcam.processing.depth import DEPTH_FLOW
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "middlebury_flow_other"
 SEQUENCES = ("RubberWhale", "Hydrangea", "Dimetrodon", "Urban2", "Venus")

@@ -1,4 +1,4 @@
-"""lfcam's depth chain on the HCI 4D light-field benchmark (issue 5; not part of the test run).
+"""lfcam's depth chain on the HCI 4D light-field benchmark (not part of the test run).
 
     python benchmarks/hci.py [--data DIR] [--scene antinous] [--grids 3x4,9x9]
                              [--repeats N] [--ablation]
@@ -12,7 +12,7 @@ least squares of the flows onto the offsets. Times are medians over the repeats
 (flows included). ``--ablation`` adds lfcam without the parallax fill and without
 the backward flows, to show what each step pays.
 
-Targets (issue 5), antinous 3 x 4: BadPix0.07 <= 10%, MSE x 100 <= 5, <= 1 s on
+Targets, antinous 3 x 4: BadPix0.07 <= 10%, MSE x 100 <= 5, <= 1 s on
 2 cores; 9 x 9 at least as good as 3 x 4. The data is read in place from
 ``../shared/data`` (its licence forbids bundling it).
 """
@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 
 import lfcam
-from lfcam.lightfield import disparity_metrics
+from lfcam.sim.metrics import disparity_metrics
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 GRIDS = {"3x4": "3:6,3:7", "9x9": "0:9,0:9", "3x3": "3:6,3:6", "5x5": "2:7,2:7"}
@@ -90,8 +90,12 @@ def main() -> int:
             "lfcam": lambda lf=lf: lf.estimate_depth().parallax,
         }
         if args.ablation:
-            methods["lfcam, no fill"] = lambda lf=lf: lf.estimate_depth(fill=False).parallax
-            methods["lfcam, no backward"] = lambda lf=lf: lf.estimate_depth(backward=False).parallax
+            methods["lfcam, no fill"] = lambda lf=lf: (
+                lf.estimate_depth(lfcam.DepthParams(fill=False)).parallax
+            )
+            methods["lfcam, no backward"] = lambda lf=lf: (
+                lf.estimate_depth(lfcam.DepthParams(backward=False)).parallax
+            )
         for name, fn in methods.items():
             d, t = timed(fn, args.repeats)
             full = disparity_metrics(d, gt)

@@ -28,9 +28,9 @@ from typing import Any
 import tifffile
 
 import lfcam
-from lfcam.calibrate import run_calibration
+from lfcam.calibration.calibrate import run_calibration
 from lfcam.pipeline import process_capture
-from lfcam.simulator import SimConfig, depth_accuracy
+from lfcam.sim import SimConfig, depth_accuracy
 
 
 def main() -> None:
@@ -89,7 +89,7 @@ def main() -> None:
             print(f"{stage:22} {statistics.median(times):9.2f} {len(times):5d}  {targets[stage]}")
     print("last capture's stages (s): " + ", ".join(f"{k} {v}" for k, v in extra.items()))
     print(f"peak memory of a process run on its own: {peak_mb:.0f} MB (target <= 2048 MB)")
-    print("accuracy against the simulator's truth (issue 4: median <= 1%, <= 5% off by > 5%,")
+    print("accuracy against the simulator's truth (targets: median <= 1%, <= 5% off by > 5%,")
     print("coverage >= 95%; all pixels the reference sees, occlusion bands included):")
     for name, med, bad, cov in accuracy:
         print(

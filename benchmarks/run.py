@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 
 import lfcam
-import lfcam.warp
+import lfcam.kernels.warp
 
 SIZES = ("small", "full")
 
@@ -187,10 +187,10 @@ def _rectify_case(
     if plan:
         # A capture's rectification: the plan is prepared once per calibration (timed
         # in the row "rectify plan preparation"), as lfcam.rectify(raw, cal) does.
-        prepared = lfcam.warp.RectifyPlan(gains, crops, warps, masks, interp=interp)  # type: ignore[arg-type]
+        prepared = lfcam.kernels.warp.RectifyPlan(gains, crops, warps, masks, interp=interp)  # type: ignore[arg-type]
         ours: Callable[[], Any] = lambda: prepared.rectify(raw)  # noqa: E731
     else:
-        ours = lambda: lfcam.warp.rectify(raw, gains, crops, warps, masks, interp=interp)  # type: ignore[arg-type]  # noqa: E731
+        ours = lambda: lfcam.kernels.warp.rectify(raw, gains, crops, warps, masks, interp=interp)  # type: ignore[arg-type]  # noqa: E731
     return Case(
         lfcam=ours,
         reference=opencv_way_per_view if per_view else opencv_way,
@@ -201,18 +201,10 @@ def _rectify_case(
     )
 
 
-# Issue 4's row, "rectify": target lfcam/OpenCV <= 0.5 (aim <= 0.45, so that it holds on a
-# noisy machine). Idle machine before this work: 56.4 vs 103.1 ms = 0.55 (outputs reused
-# 37.5 vs 64.1 = 0.58). Plan's taps as crop indices into a band of fixed stride, 4-lane
-# bilinear for every pixel but a run's last, band kept per worker: main's build against
-# branch rect2's, alternating processes, load 4.5-5: 0.548 / 0.534 -> 0.461 / 0.465
-# (lfcam 109.5 / 113.3 -> 86.6 / 85.2 ms, reused 84.6 -> 65.3 / 70.6 ms). Then the AVX2
-# kernel simd::bilinear_band (taps as parallel arrays, offsets 8 at a time, 2 pixels a
-# register), load 5.6-7.1, three alternating pairs: medians 0.533 / 0.548 / 0.587 ->
-# 0.402 / 0.387 / 0.431 (lfcam 122.9 / 149.1 / 78.6 -> 68.9 / 111.2 / 54.0 ms).
+# rectify: target lfcam/OpenCV <= 0.5 (history: benchmarks/NOTES.md).
 @row("rectify")
 def rectify_bilinear(size: str) -> Case:
-    # Issue 4's row: a capture's rectification with the calibration's prepared plan.
+    # A capture's rectification with the calibration's prepared plan.
     return _rectify_case(size, "bilinear", cv2.INTER_LINEAR)
 
 
@@ -224,7 +216,7 @@ def rectify_per_view(size: str) -> Case:
 
 @row("rectify, no plan")
 def rectify_no_plan(size: str) -> Case:
-    # One-off: lfcam.warp.rectify from the maps, nothing prepared.
+    # One-off: lfcam.kernels.warp.rectify from the maps, nothing prepared.
     return _rectify_case(size, "bilinear", cv2.INTER_LINEAR, plan=False)
 
 
@@ -241,7 +233,7 @@ def rectify_plan_preparation(size: str) -> Case:
         return reference.same(plan.rectify(raw), theirs)
 
     return Case(
-        lfcam=lambda: lfcam.warp.RectifyPlan(gains, crops, warps, masks),
+        lfcam=lambda: lfcam.kernels.warp.RectifyPlan(gains, crops, warps, masks),
         reference=reference.reference,
         reference_name="one capture the OpenCV way, as in rectify",
         shape=f"12x{rw}x{rh} maps, {fw}x{fh}x3 gains",
@@ -259,7 +251,7 @@ def rectify_reused(size: str) -> Case:
     out = np.empty((12, rh, rw, 3), np.float32)
     g = np.empty(raw.shape, np.float32)
     dst = [np.empty((rh, rw, 3), np.float32) for _ in range(12)]
-    plan = lfcam.warp.RectifyPlan(gains, crops, warps, masks)
+    plan = lfcam.kernels.warp.RectifyPlan(gains, crops, warps, masks)
 
     def opencv_way() -> list[np.ndarray]:
         np.multiply(raw, np.float32(1 / 255), out=g)
@@ -289,7 +281,7 @@ def rectify_all_masked(size: str) -> Case:
     d = _rectify_inputs(size)
     _, _, (rw, rh) = _RECTIFY_SIZES[size]
     none = np.zeros_like(d["masks"])
-    plan = lfcam.warp.RectifyPlan(d["gains"], d["crops"], d["warps"], none)
+    plan = lfcam.kernels.warp.RectifyPlan(d["gains"], d["crops"], d["warps"], none)
 
     def fill() -> np.ndarray:
         out = np.empty((12, rh, rw, 3), np.float32)
@@ -344,7 +336,7 @@ def nan_median_vs_numpy(size: str) -> Case:
 
 
 # Triangulation: 11 flows from the reference (row 1, column 1 of the 3x4 grid) at 1 Mpx,
-# the issue's target size; the rectified frame of the rectify row is 2.7 Mpx.
+# the target size; the rectified frame of the rectify row is 2.7 Mpx.
 _TRIANGULATE_SIZES = {"small": (360, 480), "full": (1000, 1000)}
 
 
@@ -410,7 +402,7 @@ def triangulate_one_thread(size: str) -> Case:
     return _triangulate_case(size, threads=1)
 
 
-# Super-resolution (issue 6): 12 views of about 1 Mpx (1200 x 900 cells, a 1104 x 828
+# Super-resolution: 12 views of about 1 Mpx (1200 x 900 cells, a 1104 x 828
 # rectified frame, 0.91 Mpx) fused at 2x. Warps as in the rectify rows (a shifted,
 # scaled, smoothly distorted part of the frame per view), offsets 25 px per lenslet
 # and a smooth parallax field.
@@ -470,13 +462,10 @@ def _sr_inputs(size: str) -> dict[str, Any]:
     return {"raw": raw, "cal": cal, "parallax": s}
 
 
-# super_resolve 2x: issue 6's target is <= 1.5 s on 2 cores: 0.91-0.95 s (session 6).
-# Idle machine before the first work on it: 8154 ms. Same run, main's build against
-# branch sr's, alternating processes at load 10-17 on the shared 2-core machine: wall
-# 31.4 / 28.3 s -> 16.5 / 15.7 s, CPU 14.8 / 14.0 s -> 8.0 / 7.8 s (1.8x less CPU).
+# super_resolve 2x: target <= 1.5 s on 2 cores (history: benchmarks/NOTES.md).
 @row("super_resolve 2x")
 def superres_2x(size: str) -> Case:
-    from lfcam.superres import inverse_maps
+    from lfcam.products.superres import inverse_maps
 
     d = _sr_inputs(size)
     raw, cal, s = d["raw"], d["cal"], d["parallax"]
@@ -496,12 +485,7 @@ def superres_2x(size: str) -> Case:
     )
 
 
-# shift_and_add: issue 6's target is >= 50x np.add.at (lfcam/ref <= 0.02). Session 6,
-# 11 runs of both rows, --repeats 11: into arrays allocated once 13.0-16.4 ms against
-# 738-1044 ms (49.7-64x, median 56x; 10 runs of 11 >= 50x); fresh arrays 12.8-20.2 ms
-# against 713-1046 ms (43-57x, median 49x). Before the main thread took part in its
-# calls (parallel.rs), the same harness gave 15.5-23.4 ms (out=, 3 alternating
-# processes; 10.7-13.7 ms after).
+# shift_and_add: target >= 50x np.add.at, lfcam/ref <= 0.02 (history: benchmarks/NOTES.md).
 def _splat_case(size: str, reuse: bool) -> Case:
     """The fusion core alone: one view's worth of samples (1.08 Mpx full size) splatted
     with a 3 x 3 Gaussian kernel onto the 2x grid, against the same with np.add.at.
@@ -509,7 +493,7 @@ def _splat_case(size: str, reuse: bool) -> Case:
     them: its pixel grid slightly rotated and scaled (0.95), with 0.2 px jitter.
     ``reuse``: both write into arrays allocated once (numpy zeroes its own before each
     call; lfcam overwrites every element), as a loop over captures can."""
-    from lfcam.superres import shift_and_add
+    from lfcam.products.superres import shift_and_add
 
     (_, _), (vw, vh), (rw, rh) = _SR_SIZES[size]
     rng = np.random.default_rng(3)
@@ -576,11 +560,7 @@ def shift_and_add_into_out(size: str) -> Case:
     return _splat_case(size, reuse=True)
 
 
-# Rendering: issue 7's target is <= 100 ms on 2 cores. Before the per-vertex set-up:
-# 105 ms on an idle machine; at load 7, 285 ms wall vs numpy 8.76 s (ratio 0.033), CPU
-# 172 ms (2 threads) / 152 ms (1 thread). After (same machine, load 9-11): 254 ms wall vs
-# numpy 9.59 s (ratio 0.026), CPU 103 ms (2 threads) / 90 ms (1 thread); not yet shown
-# on an idle machine.
+# Rendering: target <= 100 ms on 2 cores (history: benchmarks/NOTES.md).
 # The reference view's grid mesh at 1 Mpx (1200 x 900, the full-size camera's
 # views; two triangles per pixel quad) seen from a lenslet's pose: projected vertices
 # p + o s(Z) with a smooth depth field, per-vertex RGB.
@@ -598,7 +578,7 @@ def _render_inputs(size: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple
     a, b, c, d = ids[:-1, :-1], ids[:-1, 1:], ids[1:, :-1], ids[1:, 1:]
     faces = np.concatenate([np.stack([a, c, b], -1), np.stack([b, c, d], -1)]).reshape(-1, 3)
     za = z.ravel()[faces]
-    faces = faces[za.max(1) <= 1.03 * za.min(1)]  # cut at the depth step, as lfcam.mesh
+    faces = faces[za.max(1) <= 1.03 * za.min(1)]  # cut at the depth step, as lfcam.products.mesh
     cols = np.random.default_rng(5).random((h * w, 3), dtype=np.float32)
     return (
         verts.astype(np.float32),
@@ -657,7 +637,7 @@ def numpy_rasterize(
 
 @row("rasterize depth mesh")
 def rasterize_vs_numpy(size: str) -> Case:
-    import lfcam.render
+    import lfcam.products.render
 
     verts, cols, faces, shape = _render_inputs(size)
 
@@ -673,7 +653,7 @@ def rasterize_vs_numpy(size: str) -> Case:
         return bool(agree > 0.999 and close > 0.999 and close_z > 0.999)
 
     return Case(
-        lfcam=lambda: lfcam.render.rasterize(verts, cols, faces, shape),
+        lfcam=lambda: lfcam.products.render.rasterize(verts, cols, faces, shape),
         reference=lambda: numpy_rasterize(verts, cols, faces, shape),
         reference_name="numpy vectorised z-buffer (small triangles only)",
         shape=f"{len(faces) / 1e6:.2f} M triangles -> {shape[1]}x{shape[0]} RGB",

@@ -3,16 +3,13 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 import lfcam
-from lfcam.calibrate import CalibrationRun, run_calibration
-from lfcam.simulator import SimConfig, SimulationResult, load_truth
-
-SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+from lfcam.calibration.calibrate import CalibrationRun, run_calibration
+from lfcam.sim import SimConfig, SimulationResult, load_truth
 
 
 @dataclass
@@ -28,7 +25,7 @@ class Camera:
 
 @pytest.fixture(scope="session")
 def reference_camera(tmp_path_factory) -> Camera:
-    """The issue's reference camera: 3 x 4, 480 x 360 px views, 8-bit, noise,
+    """The reference camera: 3 x 4, 480 x 360 px views, 8-bit, noise,
     3 board distances x 5 captures, and four scenes (one a flat board at a
     distance not used in calibration)."""
     root = tmp_path_factory.mktemp("reference")

@@ -1,4 +1,4 @@
-"""Calibration against the simulator's ground truth (issue 3), and its bad inputs."""
+"""Calibration against the simulator's ground truth , and its bad inputs."""
 
 from __future__ import annotations
 
@@ -10,15 +10,16 @@ import numpy as np
 import pytest
 
 import lfcam
-from lfcam.calibrate import fit_depth_model
+from lfcam.calibration.parallax import fit_depth_model
 from lfcam.cli import main
 from lfcam.io import read_raw, to_float
-from lfcam.simulator import SimConfig, SimulatedCamera, _Renderer, add_noise
+from lfcam.sim import SimConfig, SimulatedCamera
+from lfcam.sim.scenes import _Renderer, add_noise
 
 
 # --------------------------------------------------------------------------
 # Accuracy: the reference camera (3 x 4, 480 x 360 px views, 8-bit, noise,
-# 3 distances x 5 captures), as the issue specifies.
+# 3 distances x 5 captures), as a lab would take them.
 # --------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def reference_run(reference_camera):
@@ -73,7 +74,7 @@ def test_white_is_neutral_and_flat_after_gains(reference_run) -> None:
     cal = run.calibration
     # A fresh white capture (new noise), not one the gains were made from.
     cam = SimulatedCamera(sim.camera.cfg)
-    clean = _Renderer(cam).render(lfcam.simulator.Scene("white", white=True))
+    clean = _Renderer(cam).render(lfcam.sim.scenes.Scene("white", white=True))
     raw = add_noise(clean, cam.cfg, np.random.default_rng(12345))
     flat = to_float(raw) * cal.gains
     for i, (x0, y0, w, h) in enumerate(cal.crops):
@@ -235,25 +236,25 @@ def _lattice_shifts(grid=(3, 4), ref=5, a=(25.8, 0.1), b=(0.2, 19.4)):
 
 
 def test_lattice_check_finds_the_wrong_view() -> None:
-    from lfcam.calibrate import _lattice_check
+    from lfcam.calibration.parallax import lattice_check
 
     P = _lattice_shifts()
     P += np.random.default_rng(0).normal(0, 0.3, P.shape)  # lens distortion, noise
     P[5] = 0.0
-    pred, wrong = _lattice_check(P, (3, 4), 5)
+    pred, wrong = lattice_check(P, (3, 4), 5)
     assert not wrong.any()
     np.testing.assert_allclose(pred, _lattice_shifts(), atol=0.5)
     bad = P.copy()
     bad[3] = (-2.2, -51.3)
-    pred, wrong = _lattice_check(bad, (3, 4), 5)
+    pred, wrong = lattice_check(bad, (3, 4), 5)
     assert np.nonzero(wrong)[0].tolist() == [3]
     np.testing.assert_allclose(pred[3], _lattice_shifts()[3], atol=0.5)
 
 
 def test_board_shift_measured_again_from_the_lattice() -> None:
     """A shift too large for a plain flow start is found from the lattice's guess."""
-    from lfcam.calibrate import _measure_parallax
-    from lfcam.flow import FlowParams
+    from lfcam.calibration.parallax import measure_parallax
+    from lfcam.kernels.flow import FlowParams
 
     rng = np.random.default_rng(3)
     h, w, shift = 240, 320, (61.25, -23.5)
@@ -264,6 +265,6 @@ def test_board_shift_measured_again_from_the_lattice() -> None:
     moved = cv2.warpAffine(big, M, (w, h), flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP)
     views = np.stack([ref, moved])[..., None].repeat(3, -1)
     masks = np.ones((2, h, w), bool)
-    P, cover, _ = _measure_parallax(views, masks, 0, FlowParams(), init={1: np.array(shift) + 2})
+    P, cover, _ = measure_parallax(views, masks, 0, FlowParams(), init={1: np.array(shift) + 2})
     np.testing.assert_allclose(P[1], shift, atol=0.05)
     assert cover[1] > 0.5

@@ -18,8 +18,9 @@ import numpy as np
 import pytest
 
 import lfcam
-from lfcam.calibration import FORMAT_VERSION, Calibration, file_hash, info
+from lfcam.calibration import FORMAT_VERSION, Calibration, info
 from lfcam.errors import CalibrationError, InputError
+from lfcam.io import file_hash
 
 R, C = 3, 4
 N = R * C

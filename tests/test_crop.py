@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 import lfcam
-import lfcam.crop
 import lfcam.errors
+import lfcam.kernels.crop
 from lfcam import _lfcam
 
 DTYPES = [np.uint8, np.uint16, np.float32]
@@ -195,7 +195,7 @@ def test_unallocatable_output_raises_memory_error() -> None:
         lfcam.crop_lenslets(raw, rects)
 
 
-@pytest.mark.parametrize("module", [lfcam.crop, lfcam.errors])
+@pytest.mark.parametrize("module", [lfcam.kernels.crop, lfcam.errors])
 def test_docstring_examples(module: object) -> None:
     result = doctest.testmod(module, optionflags=doctest.NORMALIZE_WHITESPACE)  # type: ignore[arg-type]
     assert result.attempted > 0

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 import lfcam
-from lfcam.pattern import procedural_texture
-from lfcam.triangulate import MAX_VIEWS
+from lfcam.calibration.pattern import procedural_texture
+from lfcam.processing.triangulate import MAX_VIEWS
 
 
 def _two_layers(grid=(3, 3), size=(160, 200), d_back=0.5, d_front=5.0, seed=0):
@@ -58,7 +58,7 @@ def test_occlusion_bands_are_filled_from_the_right_side() -> None:
     inner = np.s_[12:-12, 12:-12]  # frame borders: content leaves the views
     bad = {}
     for fill in (False, True):
-        s = lfcam.depth_from_views(views, offsets, ref, fill=fill).parallax
+        s = lfcam.depth_from_views(views, offsets, ref, lfcam.DepthParams(fill=fill)).parallax
         err = np.abs(s - truth)[inner]
         bad[fill] = float(np.mean(~(err <= 0.25)))
     # Measured: 4.8% without the fill, 0.65% with it (the square's outline is 4.6%
@@ -88,7 +88,7 @@ def _crafted_flows(monkeypatch, grid, s_true, s_wrong, bad_rows, far_radius):
     h, w = 30, 40
     n = len(offsets)
 
-    def fake(views, ref, params, fb, threads, *, margin=None, backward=True):
+    def fake(views, ref, params, threads, *, margin=None):
         s = np.full((n, h, w), s_true, np.float32)
         far = np.hypot(offsets[:, 0], offsets[:, 1]) > far_radius
         s[np.ix_(far, bad_rows, np.arange(w))] = s_wrong
@@ -100,7 +100,7 @@ def _crafted_flows(monkeypatch, grid, s_true, s_wrong, bad_rows, far_radius):
         seen[ref] = False
         return flows, weights, seen, (slice(0, h), slice(0, w))
 
-    monkeypatch.setattr(lfcam.depth, "_flows_and_seen", fake)
+    monkeypatch.setattr(lfcam.processing.depth, "_flows_and_seen", fake)
     views = np.random.default_rng(0).random((n, h, w, 3)).astype(np.float32)
     return views, offsets, reference
 
@@ -111,16 +111,16 @@ def test_many_views_fall_back_to_the_near_views_where_far_ones_fail(monkeypatch)
     # a quarter of the views: unsure); the near views' own triangulation is exact.
     bad = np.arange(10, 20)
     views, offsets, ref = _crafted_flows(monkeypatch, (9, 9), 0.5, 1.5, bad, 2.9)
-    near = lfcam.depth.near_views(offsets, ref)
+    near = lfcam.processing.depth.near_views(offsets, ref)
     assert near is not None
     assert near.tolist() == [r * 9 + c for r in range(2, 7) for c in range(2, 7)]
-    res = lfcam.depth_from_views(views, offsets, ref, fill=False)
+    res = lfcam.depth_from_views(views, offsets, ref, lfcam.DepthParams(fill=False))
     np.testing.assert_allclose(res.parallax, 0.5, atol=1e-4)
     assert (res.n_used[bad] == 24).all()
     assert (res.n_used[:10] == 80).all()
     # Without the second triangulation (too few near views to trust), the far views win.
-    monkeypatch.setattr(lfcam.depth, "NEAR_VIEWS_MIN", 25)
-    res = lfcam.depth_from_views(views, offsets, ref, fill=False)
+    params = lfcam.DepthParams(fill=False, near_views_min=25)
+    res = lfcam.depth_from_views(views, offsets, ref, params)
     assert abs(float(np.median(res.parallax[bad])) - 1.5) < 1e-3
 
 
@@ -129,46 +129,48 @@ def test_few_views_have_no_near_set() -> None:
     for rows, cols in ((3, 4), (3, 3), (5, 5)):
         rr, rc = (rows - 1) // 2, (cols - 1) // 2
         off = np.array([[c - rc, r - rr] for r in range(rows) for c in range(cols)], np.float64)
-        assert lfcam.depth.near_views(off, rr * cols + rc) is None
+        assert lfcam.processing.depth.near_views(off, rr * cols + rc) is None
 
 
 def test_flow_resolution_follows_the_window_size(monkeypatch) -> None:
-    # Full resolution up to FLOW_MAX_PIXELS (the simulator's and HCI's views), half
+    # Full resolution up to flow_max_pixels (the simulator's and HCI's views), half
     # resolution for the full-size camera's 0.95 Mpx window, and so on.
-    from lfcam.depth import BACKWARD_SCALE, DEPTH_FLOW, FLOW_MAX_PIXELS, depth_flow
+    from lfcam.processing.depth import DEPTH_FLOW
 
-    assert FLOW_MAX_PIXELS == 500_000
-    scales = [depth_flow(n).finest_scale for n in (300_000, 500_000, 950_000, 2_000_001)]
+    defaults = lfcam.DepthParams()
+    assert defaults.flow_max_pixels == 500_000
+    scales = [defaults.flow_for(n).finest_scale for n in (300_000, 500_000, 950_000, 2_000_001)]
     assert scales == [0, 0, 1, 2]
-    assert depth_flow(950_000) == dataclasses.replace(DEPTH_FLOW, finest_scale=1)
+    assert defaults.flow_for(950_000) == dataclasses.replace(DEPTH_FLOW, finest_scale=1)
     # depth_from_views uses it for its window unless told otherwise.
     used = []
-    real = lfcam.depth.dis_flow
+    real = lfcam.processing.depth.dis_flow
 
     def spy(a, b, params=None, init=None):
         used.append((a.shape, params.finest_scale))
         return real(a, b, params, init)
 
-    monkeypatch.setattr(lfcam.depth, "dis_flow", spy)
-    monkeypatch.setattr(lfcam.depth, "FLOW_MAX_PIXELS", 10000)
+    monkeypatch.setattr(lfcam.processing.depth, "dis_flow", spy)
+    params = lfcam.DepthParams(flow_max_pixels=10000, fill=False)
     views, offsets, ref, _ = _two_layers()  # 160 x 200: a 32000 px window
-    lfcam.depth_from_views(views, offsets, ref, fill=False)
+    lfcam.depth_from_views(views, offsets, ref, params)
     # Scale 1: the views are reduced to 80 x 100 first, DIS runs at its finest scale
-    # forward and backward (BACKWARD_SCALE is not finer than that); one of each per view.
+    # forward and backward (backward_scale is not finer than that); one of each per view.
     n = len(views) - 1
-    assert BACKWARD_SCALE == 1
+    assert params.backward_scale == 1
     assert sorted(used) == [((80, 100), 0)] * (2 * n)
     used.clear()
-    lfcam.depth_from_views(views, offsets, ref, fill=False, flow=DEPTH_FLOW)
+    lfcam.depth_from_views(views, offsets, ref, dataclasses.replace(params, flow=DEPTH_FLOW))
     # Full resolution: the backward flows one scale coarser.
     assert sorted(used) == [((160, 200), 0)] * n + [((160, 200), 1)] * n
     used.clear()
-    lfcam.depth_from_views(views, offsets, ref, fill=False, flow=DEPTH_FLOW, backward=False)
+    no_back = dataclasses.replace(params, flow=DEPTH_FLOW, backward=False)
+    lfcam.depth_from_views(views, offsets, ref, no_back)
     assert used == [((160, 200), 0)] * n
 
 
 @pytest.mark.parametrize("size", [(320, 400), (321, 399)])
-def test_half_resolution_flow_keeps_the_parallax(monkeypatch, size) -> None:
+def test_half_resolution_flow_keeps_the_parallax(size) -> None:
     # The flow at half resolution (views block-averaged, flows and checks interpolated
     # back, pixel centres aligned; odd sizes padded): the parallax away from the
     # square's outline is as exact as at full resolution, and the outline's band is
@@ -186,8 +188,8 @@ def test_half_resolution_flow_keeps_the_parallax(monkeypatch, size) -> None:
     keep &= ~near_edge
     errs = {}
     for max_pixels in (10**6, h * w // 2):
-        monkeypatch.setattr(lfcam.depth, "FLOW_MAX_PIXELS", max_pixels)
-        s = lfcam.depth_from_views(views, offsets, ref).parallax
+        params = lfcam.DepthParams(flow_max_pixels=max_pixels)
+        s = lfcam.depth_from_views(views, offsets, ref, params).parallax
         err = np.abs(s - truth)
         errs[max_pixels] = (
             float(np.nanmedian(err[keep])),

@@ -1,4 +1,4 @@
-"""Confidence-weighted, edge-aware filling of the parallax (lfcam.depth.fill_parallax)."""
+"""Confidence-weighted, edge-aware filling of the parallax (lfcam.processing.fill.fill_parallax)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 
 import lfcam
 from lfcam import _lfcam
-from lfcam.depth import fill_parallax, guide_image
+from lfcam.processing.fill import fill_parallax, guide_image
 
 
 def _naive_wmf(values, weights, guide, todo, radius, stride, sc, ss):

@@ -1,21 +1,20 @@
-"""The optical flow alone (lfcam.flow): sub-pixel accuracy on known motion and on
+"""The optical flow alone (lfcam.kernels.flow): sub-pixel accuracy on known motion and on
 Middlebury's ground truth (read in place from ../shared/data; skipped without it)."""
 
 from __future__ import annotations
-
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
 import lfcam
-from lfcam.depth import DEPTH_FLOW
-from lfcam.flow import dis_flow, end_point_error, prepare
+from lfcam.calibration.pattern import procedural_texture
 from lfcam.io import read_flo
-from lfcam.pattern import procedural_texture
+from lfcam.kernels.flow import dis_flow, end_point_error, prepare
+from lfcam.processing.depth import DEPTH_FLOW
+from shared_data import SHARED_DATA
 
-MIDDLEBURY = Path(__file__).resolve().parents[2] / "shared" / "data" / "middlebury_flow_other"
+MIDDLEBURY = SHARED_DATA / "middlebury_flow_other"
 
 
 def _fourier_shift(img, dx, dy):
@@ -46,7 +45,7 @@ def test_subpixel_translation_of_a_texture(shift) -> None:
 
 def _middlebury(name):
     if not MIDDLEBURY.is_dir():
-        pytest.skip("../shared/data/middlebury_flow_other not present")
+        pytest.skip(f"{MIDDLEBURY} not present")
     a = cv2.imread(str(MIDDLEBURY / "other-data" / name / "frame10.png"))[..., ::-1]
     b = cv2.imread(str(MIDDLEBURY / "other-data" / name / "frame11.png"))[..., ::-1]
     return a, b, read_flo(MIDDLEBURY / "other-gt-flow" / name / "flow10.flo")

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import lfcam
-from lfcam.pattern import make_pattern
+from lfcam.calibration.pattern import make_pattern
 
 
 def test_shape_dtype_and_determinism() -> None:

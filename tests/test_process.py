@@ -1,4 +1,4 @@
-"""Per-capture processing against the simulator's ground truth (issue 4)."""
+"""Per-capture processing against the simulator's ground truth."""
 
 from __future__ import annotations
 
@@ -11,11 +11,11 @@ import pytest
 import tifffile
 
 import lfcam
-from lfcam.calibrate import run_calibration
+from lfcam.calibration.calibrate import run_calibration
 from lfcam.cli import main
-from lfcam.outputs import points_from_depth
 from lfcam.pipeline import process_capture
-from lfcam.simulator import SimConfig
+from lfcam.products.geometry import points_from_depth
+from lfcam.sim import SimConfig
 
 
 def _truth(sim, name):
@@ -60,7 +60,7 @@ def test_occlusions_need_robust_view_selection(reference_camera, processed) -> N
     does not (this shows the test above can fail)."""
     cam = reference_camera
     res = processed["layered"]
-    from lfcam.depth import compute_flows, depth_from_parallax
+    from lfcam.processing.depth import compute_flows, depth_from_parallax
 
     flows, _ = compute_flows(res.views, cam.cal.reference)
     o = cam.cal.offsets[:, None, None, :]
@@ -211,7 +211,7 @@ def test_process_command(reference_camera, tmp_path, capsys) -> None:
             "result.json",
         ]
         info = json.loads((d / "result.json").read_text())
-        assert info["calibration_sha256"] == lfcam.calibration.file_hash(calf)
+        assert info["calibration_sha256"] == lfcam.io.file_hash(calf)
         z = tifffile.imread(d / "depth.tiff")
         assert z.dtype == np.float32
         assert z.shape == cam.cal.rect_shape

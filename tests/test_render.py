@@ -1,4 +1,4 @@
-"""Meshes, the z-buffered rasteriser and novel views (issue 7)."""
+"""Meshes, the z-buffered rasteriser and novel views."""
 
 from __future__ import annotations
 
@@ -8,17 +8,12 @@ import numpy as np
 import pytest
 
 import lfcam
-from lfcam.mesh import mesh_from_depth, write_mesh_ply
-from lfcam.outputs import points_from_depth, write_capture
+from lfcam.outputs import write_capture
 from lfcam.pipeline import process_capture
-from lfcam.render import (
-    lenslet_camera,
-    parse_pose,
-    pose_matrix,
-    rasterize,
-    render_mesh,
-)
-from lfcam.render import reference_camera as camera_model
+from lfcam.products.geometry import lenslet_camera, parse_pose, points_from_depth, pose_matrix
+from lfcam.products.geometry import reference_camera as camera_model
+from lfcam.products.mesh import mesh_from_depth, write_mesh_ply
+from lfcam.products.render import rasterize, render_mesh
 
 # -- the rasteriser against a naive per-pixel implementation -------------------------
 
@@ -225,7 +220,7 @@ def _psnr(a, b):
 
 def test_lenslet_camera_reproduces_the_depth_equation(reference_camera) -> None:
     """Projecting a point at depth Z seen at reference pixel p with lenslet i's camera
-    lands at p + o_i s(Z) (DESIGN.md section 3)."""
+    lands at p + o_i s(Z) (docs/design.md, "Plane and parallax")."""
     cal = reference_camera.cal
     H, W = cal.rect_shape
     depth = np.full((H, W), np.nan, np.float32)
@@ -262,13 +257,15 @@ def test_render_at_the_reference_pose_reproduces_the_reference(reference_camera,
     assert np.isnan(out.depth[~out.mask]).all()
 
 
-#: Issue 7's target: PSNR (dB) of the reference mesh rendered at each other lenslet's
-#: camera against that lenslet's rectified view, on the pixels both see. Measured, worst
-#: view, with the parallax fill in the depth chain: planes 31.36, layered 29.33, spheres
-#: 28.05 (view (2, 3), the longest baseline: sphere sides seen at grazing angles by the
-#: reference are stretched over what it sees face-on; 27.99 before the fill, 28.55 with
-#: ground-truth depth); the calibration board scene 38.36.
+#: PSNR (dB) of the reference mesh rendered at each other lenslet's camera against that
+#: lenslet's rectified view, on the pixels both see, worst view: at least 28 dB, and no
+#: more than 0.3 dB below what the current depth chain measures. Measured: planes 31.36,
+#: layered 29.33, spheres 28.05 (view (2, 3), the longest baseline: sphere sides seen at
+#: grazing angles by the reference are stretched over what it sees face-on; 28.55 with
+#: ground-truth depth).
 PSNR_TARGET = 28.0
+PSNR_MEASURED = {"planes": 31.36, "layered": 29.33, "spheres": 28.05}
+PSNR_MARGIN = 0.3
 
 
 @pytest.mark.parametrize(
@@ -295,7 +292,8 @@ def test_render_at_other_lenslets_matches_their_views(reference_camera, processe
         assert both.sum() >= 20_000, f"view {i}: only {both.sum()} pixels compared"
         scores[i] = _psnr(out.image[both], view[both])
     worst = min(scores, key=scores.__getitem__)
-    assert scores[worst] >= PSNR_TARGET, (
+    bound = max(PSNR_TARGET, PSNR_MEASURED[scene] - PSNR_MARGIN)
+    assert scores[worst] >= bound, (
         f"{scene}: PSNR {scores[worst]:.2f} dB at view {worst};"
         f" all: { {k: round(v, 2) for k, v in scores.items()} }"
     )

@@ -1,4 +1,4 @@
-"""The camera simulator against DESIGN.md: explicit ray geometry vs plane + parallax."""
+"""The camera simulator against docs/design.md: explicit ray geometry vs plane + parallax."""
 
 from __future__ import annotations
 
@@ -10,7 +10,8 @@ import tifffile
 
 import lfcam
 from lfcam.io import read_image
-from lfcam.simulator import SimConfig, SimulatedCamera, add_noise, load_truth, make_scene, trace
+from lfcam.sim import SimConfig, SimulatedCamera, load_truth
+from lfcam.sim.scenes import add_noise, make_scene, trace
 
 # Several cameras as users have them: other grids, optics, distortions, references.
 CAMERAS = {
@@ -60,7 +61,8 @@ def _plane_parallax_error(cam: SimulatedCamera, rng: np.random.Generator, n: int
 
 @pytest.mark.parametrize("name", list(CAMERAS))
 def test_traced_rays_obey_plane_plus_parallax(name: str) -> None:
-    """DESIGN.md section 3: p_i = p + o_i s, with Z_c = f D / (D - f), b_i = -l_i Z_c / D.
+    """docs/design.md, "Plane and parallax": p_i = p + o_i s, with Z_c = f D / (D - f),
+    b_i = -l_i Z_c / D.
 
     The simulator traces rays explicitly (thin-lens imaging, pinholes, per-lenslet
     distortion); nothing in it uses the equation. They agree to 1e-3 px.
@@ -89,7 +91,7 @@ def test_parallax_fails_with_z_c_zero() -> None:
 
 @pytest.mark.parametrize("name", list(CAMERAS))
 def test_optical_centres_give_o_times_zb_over_zc(name: str) -> None:
-    """DESIGN.md section 4: image-circle centres mapped to the rectified frame,
+    """docs/design.md, "Parallax fit": image-circle centres mapped to the rectified frame,
     relative to the reference, are d_i = o_i Z_b / Z_c (not o_i)."""
     cam = SimulatedCamera(CAMERAS[name])
     c = np.array([cam.rect_from_sensor(i, cam.optical_centre_sensor(i)) for i in range(cam.N)])
@@ -145,7 +147,7 @@ def test_crops_and_centres_are_consistent() -> None:
     mid = crops[:, :2] + crops[:, 2:] / 2.0
     assert np.abs(centres - mid).max() < 25.0  # the circle is near the crop centre
     # Non-axial distortion moves the visible circle's centre off the optical centre,
-    # by a few pixels: a small error of the optical-centre route of DESIGN.md 4.
+    # by a few pixels: a small error of the optical-centre route (docs/design.md, "Parallax fit").
     off = np.linalg.norm(centres - cam.optical_centres(), axis=1)
     assert 0.3 < np.median(off) < 12.0
     # The circle is clipped by the baffle at the top and bottom, not at the sides.
@@ -157,7 +159,7 @@ def test_board_depth_truth_is_exact() -> None:
     cfg = SimConfig(view_size=(160, 120), scenes=("board",), board_distance=1.37)
     cam = SimulatedCamera(cfg)
     vv, uu = np.mgrid[0 : cam.H_rect, 0 : cam.W_rect].astype(np.float64)
-    from lfcam.simulator import reference_rays
+    from lfcam.sim.scenes import reference_rays
 
     x0, m = reference_rays(cam, np.stack([uu, vv], -1))
     _, depth, labels = trace(make_scene("board", cam), x0, m)
@@ -166,7 +168,7 @@ def test_board_depth_truth_is_exact() -> None:
 
 
 def test_reference_rays_pass_through_the_board_pixel_and_the_optical_centre() -> None:
-    from lfcam.simulator import reference_rays
+    from lfcam.sim.scenes import reference_rays
 
     cam = SimulatedCamera(SimConfig(seed=4))
     uv = np.random.default_rng(0).uniform(0, [cam.W_rect, cam.H_rect], (100, 2))

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import lfcam
-import lfcam.stats
+import lfcam.kernels.stats
 from lfcam import _lfcam
 
 RNG = np.random.default_rng(7)
@@ -116,6 +116,6 @@ def test_too_many_values_and_bindings_checks() -> None:
 
 
 def test_docstring_examples() -> None:
-    result = doctest.testmod(lfcam.stats, optionflags=doctest.NORMALIZE_WHITESPACE)
+    result = doctest.testmod(lfcam.kernels.stats, optionflags=doctest.NORMALIZE_WHITESPACE)
     assert result.attempted > 0
     assert result.failed == 0

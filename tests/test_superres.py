@@ -1,4 +1,4 @@
-"""Super-resolution and refocus (issue 6) against naive references and the simulator's
+"""Super-resolution and refocus against naive references and the simulator's
 ground truth (``truth/<scene>/reference_2x.tiff``)."""
 
 from __future__ import annotations
@@ -11,12 +11,13 @@ import tifffile
 import lfcam
 from lfcam import _lfcam
 from lfcam.pipeline import process_capture
-from lfcam.superres import (
+from lfcam.products.refocus import parallax_at_depth
+from lfcam.products.superres import (
     SuperResParams,
     fill_holes,
     inverse_maps,
-    parallax_at_depth,
     place_raw_samples,
+    raw_samples,
     shift_and_add,
 )
 
@@ -482,14 +483,33 @@ def test_all_in_focus_matches_truth_better_than_one_view(reference_camera) -> No
 
 
 def test_super_resolve_params_are_used(reference_camera) -> None:
-    """deblur_iterations=0 returns the plain (robust) shift-and-add."""
+    """deblur_iterations=0 returns the plain (robust) shift-and-add: the public
+    pieces, place_raw_samples + shift_and_add + fill_holes, give the same image."""
     cal = reference_camera.cal
     raw = lfcam.read_raw(reference_camera.sim.captures["board"])
     s = np.zeros(tuple(cal.rect_shape), np.float32)
-    a = lfcam.super_resolve(raw, cal, s, 1, params=SuperResParams(deblur_iterations=0))
-    b = lfcam.super_resolve(raw, cal, s, 1)
-    assert a.shape == b.shape == (*cal.rect_shape, 3)
-    assert not np.allclose(a, b)
+    p = SuperResParams(deblur_iterations=0)
+    a = lfcam.super_resolve(raw, cal, s, 2, params=p)
+    pos = place_raw_samples(cal, s, iterations=p.place_iterations, tolerance=p.place_tolerance)
+    sums, wsum = shift_and_add(
+        pos,
+        raw_samples(raw, cal),
+        (2 * cal.rect_shape[0], 2 * cal.rect_shape[1]),
+        2,
+        sigma=p.kernel_sigma,
+        radius=p.kernel_radius,
+        iterations=p.robust_iterations,
+        huber=p.huber,
+        reject=p.reject,
+    )
+    with np.errstate(invalid="ignore", divide="ignore"):
+        plain = fill_holes((sums / wsum[..., None]).astype(np.float32), wsum)
+    assert a.shape == plain.shape == (2 * cal.rect_shape[0], 2 * cal.rect_shape[1], 3)
+    # The core fuses sum / wsum in one pass (float32 division either way).
+    np.testing.assert_allclose(a, plain, rtol=0, atol=1e-6)
+    # The default (deblurred) image is a different one.
+    b = lfcam.super_resolve(raw, cal, s, 2)
+    assert float(np.abs(a - b).mean()) > 1e-3
 
 
 # ----------------------------------------------------------------- the command line

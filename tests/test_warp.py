@@ -18,9 +18,10 @@ import numpy as np
 import pytest
 
 import lfcam
-import lfcam.warp
-from lfcam import _lfcam, warp
-from lfcam.warp import INTERPOLATIONS
+import lfcam.kernels.warp
+from lfcam import _lfcam
+from lfcam.kernels import warp
+from lfcam.kernels.warp import INTERPOLATIONS
 
 RNG = np.random.default_rng(20240601)
 
@@ -285,7 +286,7 @@ def test_rectify_matches_the_definition(dtype, channels, gain_channels, interp) 
 
 
 def opencv_way(raw, gains, crops, warps, flag):
-    """The issue's reference: gain multiply, crop, cv2.remap per view."""
+    """The plain way: gain multiply, crop, cv2.remap per view."""
     scale = {np.uint8: 1 / 255, np.uint16: 1 / 65535, np.float32: 1.0}[raw.dtype.type]
     r = raw.reshape(*raw.shape[:2], -1)
     g = r.astype(np.float32) * scale * gains.reshape(*gains.shape[:2], -1)
@@ -683,7 +684,7 @@ def test_plan_parallel_and_one_thread_agree() -> None:
 
 
 def test_pipeline_rectify_uses_the_cached_plan(reference_camera) -> None:
-    from lfcam.pipeline import rectify_plan
+    from lfcam.processing.rectify import rectify_plan
 
     cal = reference_camera.cal
     raw = lfcam.read_raw(reference_camera.sim.captures["planes"])
@@ -713,7 +714,7 @@ def board_camera(tmp_path_factory: pytest.TempPathFactory):
     """The reference 3 x 4 camera: one white capture, one board capture at the
     reference distance, and the simulator's true warps and masks."""
     from lfcam.io import read_image
-    from lfcam.simulator import SimConfig, load_truth
+    from lfcam.sim import SimConfig, load_truth
 
     cfg = SimConfig(scenes=(), distances=(1.0,), captures_per_distance=1, white_captures=1)
     sim = lfcam.simulate(tmp_path_factory.mktemp("sim") / "sim", cfg)

@@ -4,30 +4,47 @@ Raw frames from a camera with one front lens and an array of large lenslets beco
 rectified views, metric depth, super-resolved, refocused and novel-view images. The
 per-pixel work runs in a Rust core (``lfcam._lfcam``) on lfcam's own thread pool; see
 :func:`set_num_threads` and the ``LFCAM_NUM_THREADS`` environment variable.
+
+The stages live in subpackages that import only downwards (docs/design.md, "Module
+map"): :mod:`lfcam.io` and :mod:`lfcam.kernels` <- :mod:`lfcam.calibration` <-
+:mod:`lfcam.processing` <- :mod:`lfcam.products` and :mod:`lfcam.sim` <-
+:mod:`lfcam.pipeline` <- :mod:`lfcam.outputs` <- :mod:`lfcam.cli`.
 """
 
 from lfcam._lfcam import __version__, get_num_threads, set_num_threads
-from lfcam.calibrate import calibrate
-from lfcam.calibration import Calibration
-from lfcam.crop import crop_lenslets
-from lfcam.depth import DepthResult, depth_from_views, estimate_depth
+from lfcam.calibration import Calibration, CalibrationParams, calibrate, make_pattern
 from lfcam.errors import CalibrationError, InputError, LfcamError, NumericalError
 from lfcam.io import read_image, read_pfm, read_raw, write_pfm
-from lfcam.lightfield import LightField
-from lfcam.mesh import Mesh, mesh_from_depth
-from lfcam.pattern import make_pattern
-from lfcam.pipeline import CaptureResult, process_capture, rectify
-from lfcam.render import RenderResult, render_view
-from lfcam.simulator import SimConfig, SimulationResult, simulate
-from lfcam.stats import nan_median
-from lfcam.superres import all_in_focus, refocus, super_resolve
-from lfcam.triangulate import TriangulationResult, triangulate
-from lfcam.warp import remap_bilinear
+from lfcam.kernels import crop_lenslets, nan_median, remap_bilinear
+from lfcam.pipeline import CaptureResult, process_capture
+from lfcam.processing import (
+    DepthParams,
+    DepthResult,
+    TriangulationParams,
+    TriangulationResult,
+    depth_from_views,
+    estimate_depth,
+    rectify,
+    triangulate,
+)
+from lfcam.products import (
+    Mesh,
+    RenderResult,
+    SuperResParams,
+    all_in_focus,
+    mesh_from_depth,
+    refocus,
+    render_view,
+    super_resolve,
+)
+from lfcam.sim import LightField, SimConfig, SimulationResult, simulate
 
 __all__ = [
     "Calibration",
     "CalibrationError",
+    "CalibrationParams",
     "CaptureResult",
+    "DepthParams",
     "DepthResult",
     "InputError",
     "LfcamError",
@@ -37,6 +54,8 @@ __all__ = [
     "RenderResult",
     "SimConfig",
     "SimulationResult",
+    "SuperResParams",
+    "TriangulationParams",
     "TriangulationResult",
     "__version__",
     "all_in_focus",

@@ -55,7 +55,7 @@ def _add_simulate(sub: Any) -> None:
         "simulate",
         help="simulate a camera: calibration captures and scenes with ground truth",
         description=(
-            "Render a simulated light-field camera (DESIGN.md section 1): a calibration "
+            "Render a simulated light-field camera (docs/design.md, 'Simulator'): a calibration "
             "folder (pattern, white and board captures) and scene captures, with ground "
             "truth (warp maps, o_i, Z_c, depth, 2x reference image). Camera parameters "
             "come from --config (TOML, keys as in lfcam.SimConfig) and the flags below, "
@@ -86,7 +86,7 @@ def _add_simulate(sub: Any) -> None:
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
-    from .simulator import SimConfig, simulate
+    from .sim import SimConfig, simulate
 
     changes: dict[str, Any] = {}
     if args.full_size:
@@ -154,8 +154,8 @@ def _add_pattern(sub: Any) -> None:
 
 
 def _cmd_pattern(args: argparse.Namespace) -> int:
+    from .calibration import make_pattern
     from .io import write_image_atomic
-    from .pattern import make_pattern
 
     img = make_pattern(args.width, args.height, seed=args.seed)
     write_image_atomic(args.out, img)
@@ -175,7 +175,8 @@ def _add_calibrate(sub: Any) -> None:
         "calibrate",
         help="calibrate a camera from white and board captures",
         description=(
-            "Calibrate a camera (DESIGN.md section 4) from CAL_DIR: pattern.png, white/*, "
+            "Calibrate a camera (docs/design.md, 'Calibration pipeline') from CAL_DIR: "
+            "pattern.png, white/*, "
             "board_<distance>m/* (one or more distances; three or more, or two plus the "
             "optical centres, give metric depth with no optics known), and an optional "
             "camera.toml (grid, reference, z_c, pattern_pitch, bayer), which the flags "
@@ -196,7 +197,7 @@ def _add_calibrate(sub: Any) -> None:
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
-    from .calibrate import run_calibration
+    from .calibration import run_calibration
 
     out: Path = args.output
     if out.suffix != ".lfcal":
@@ -263,7 +264,6 @@ def _cmd_info(args: argparse.Namespace) -> int:
 # ---------------------------------------------------------------------------
 # lfcam process
 # ---------------------------------------------------------------------------
-_RAW_EXT = {".png", ".tif", ".tiff", ".jpg", ".jpeg"}
 EXIT_PARTIAL = 3
 
 
@@ -314,6 +314,8 @@ def _add_process(sub: Any) -> None:
 
 def _find_captures(path: Path, out_dir: Path) -> list[tuple[Path, Path]]:
     """(capture, its output folder) pairs, sorted."""
+    from .io import is_image_file
+
     if path.is_file():
         return [(path, out_dir / path.stem)]
     if not path.is_dir():
@@ -321,7 +323,7 @@ def _find_captures(path: Path, out_dir: Path) -> list[tuple[Path, Path]]:
     out_res = out_dir.resolve()
     found = []
     for p in sorted(path.rglob("*")):
-        if not p.is_file() or p.suffix.lower() not in _RAW_EXT or p.name.startswith("."):
+        if not is_image_file(p):
             continue
         if out_res in p.resolve().parents:
             continue
@@ -369,10 +371,11 @@ def _process_one(
 
 
 def _novel_options(args: argparse.Namespace, cal: Any) -> Any:
-    """--mesh / --novel-view / --orbit as :class:`lfcam.render.NovelViewOptions`."""
+    """--mesh / --novel-view / --orbit as :class:`lfcam.outputs.NovelViewOptions`."""
     import math
 
-    from .render import NovelViewOptions, parse_pose
+    from .outputs import NovelViewOptions
+    from .products.geometry import parse_pose
 
     if args.orbit < 0:
         raise InputError(f"--orbit: must be >= 0, got {args.orbit}")
@@ -391,7 +394,8 @@ def _novel_options(args: argparse.Namespace, cal: Any) -> Any:
 
 
 def _cmd_process(args: argparse.Namespace) -> int:
-    from .calibration import Calibration, file_hash
+    from .calibration import Calibration
+    from .io import file_hash
 
     if args.jobs < 1:
         raise InputError(f"--jobs: must be >= 1, got {args.jobs}")
@@ -514,8 +518,8 @@ def _add_depth_views(sub: Any) -> None:
 
 
 def _cmd_depth_views(args: argparse.Namespace) -> int:
-    from .lightfield import HCI_BORDER, LightField
     from .outputs import write_lightfield
+    from .sim import HCI_BORDER, LightField
 
     out: Path = args.output
     if out.exists() and not out.is_dir():
@@ -600,10 +604,10 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     import numpy as np
     import tifffile
 
-    from .calibrate import run_calibration
+    from .calibration import run_calibration
     from .outputs import write_capture
     from .pipeline import process_capture
-    from .simulator import SimConfig, depth_accuracy, simulate
+    from .sim import SimConfig, depth_accuracy, simulate
 
     out: Path = args.out_dir
     if out.exists() and any(out.iterdir()) and not args.overwrite:

@@ -1,159 +1,119 @@
-"""Writing one capture's products: depth (TIFF + preview), confidence, point cloud, JSON.
+"""Writing one capture's products: depth (TIFF + preview), confidence, point cloud, JSON,
+and the mesh and novel views asked for.
 
 Every capture's folder is assembled under a temporary name and renamed when
-complete, so an interrupted run never leaves a half-written result; a folder
-with ``result.json`` is complete.
+complete (:func:`lfcam.io.atomic_folder`), so an interrupted run never leaves a
+half-written result; a folder with ``result.json`` is complete.
 """
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import json
 import os
-import shutil
-import tempfile
-from collections.abc import Iterator
+import time
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import cv2
 import numpy as np
 
 from .calibration import Calibration
 from .errors import InputError
-from .io import _file_mode, write_image, write_pfm
+from .io import (
+    atomic_folder,
+    colour_depth,
+    encode_u8,
+    encode_u16,
+    rgb_u8,
+    write_image,
+    write_pfm,
+    write_ply,
+)
 from .pipeline import CaptureResult
+from .processing import DepthResult
+from .products.geometry import orbit_poses, points_from_depth
+from .products.mesh import DEFAULT_MAX_RATIO, mesh_from_depth, write_mesh_ply
+from .products.render import render_mesh
+from .sim import BADPIX_THRESHOLD, HCI_BORDER, LightField, disparity_metrics
+from .sim.lightfield import points_from_lightfield
 
-if TYPE_CHECKING:
-    from .depth import DepthResult
-    from .lightfield import LightField
-    from .render import NovelViewOptions
-
-__all__ = [
-    "colour_depth",
-    "points_from_depth",
-    "points_from_lightfield",
-    "write_capture",
-    "write_lightfield",
-    "write_ply",
-]
+__all__ = ["NovelViewOptions", "write_capture", "write_lightfield", "write_novel_views"]
 
 
-def colour_depth(
-    depth: np.ndarray,
-    lo: float | None = None,
-    hi: float | None = None,
-    *,
-    unit: str = "m",
-    near_high: bool = False,
-) -> np.ndarray:
-    """Depth (m) -> RGB preview with a labelled colour bar (TURBO, near = red).
+@dataclass
+class NovelViewOptions:
+    """What ``lfcam process`` renders besides depth (see :func:`write_novel_views`).
 
-    ``unit`` labels the bar; ``near_high`` says larger values are nearer (disparity),
-    so they are the red ones.
+    Attributes
+    ----------
+    mesh : bool
+        Write ``mesh.ply``.
+    pose : (4, 4) array or None
+        Write ``novel_view.png`` (and ``novel_view_depth.tiff``) from this pose.
+    orbit : int
+        Write this many orbit frames (``orbit/frame_NNN.png``) and ``orbit.mp4``; 0: none.
     """
-    finite = np.isfinite(depth)
-    if lo is None or hi is None:
-        if finite.any():
-            lo, hi = (float(v) for v in np.percentile(depth[finite], [1, 99]))
-        else:
-            lo, hi = 0.0, 1.0
-    hi = max(hi, lo + 1e-6)
-    t = np.clip((np.nan_to_num(depth, nan=hi) - lo) / (hi - lo), 0, 1)
-    if near_high:
-        t = 1 - t
-    bgr = cv2.applyColorMap(np.round((1 - t) * 255).astype(np.uint8), cv2.COLORMAP_TURBO)
-    bgr[~finite] = 0
-    H = depth.shape[0]
-    bar_w, pad, text_w = max(12, H // 30), 8, 90
-    bar = np.full((H, bar_w + pad + text_w, 3), 255, np.uint8)
-    ramp = np.linspace(0, 1, H)[:, None]  # top = near (lo)
-    col = cv2.applyColorMap(np.round((1 - ramp) * 255).astype(np.uint8), cv2.COLORMAP_TURBO)
-    bar[:, pad : pad + bar_w] = np.repeat(col, bar_w, axis=1)
-    for k in range(6):
-        y = round(k / 5 * (H - 1))
-        z = hi - (hi - lo) * k / 5 if near_high else lo + (hi - lo) * k / 5
-        yt = min(max(y + 5, 12), H - 3)
-        cv2.putText(
-            bar,
-            f"{z:.3g} {unit}",
-            (pad + bar_w + 4, yt),
-            cv2.FONT_HERSHEY_SIMPLEX,
-            0.4,
-            (0, 0, 0),
-            1,
-            cv2.LINE_AA,
-        )
-    return np.concatenate([bgr, bar], axis=1)[..., ::-1].copy()
+
+    mesh: bool = False
+    pose: np.ndarray | None = None
+    orbit: int = 0
+
+    @property
+    def any(self) -> bool:
+        """Whether anything is asked for."""
+        return self.mesh or self.pose is not None or self.orbit > 0
 
 
-def points_from_depth(depth: np.ndarray, cal: Calibration) -> tuple[np.ndarray, np.ndarray, str]:
-    """3-D points (metres, front-lens frame: X right, Y down, Z forward) of finite depths.
+def write_novel_views(
+    folder: Any, result: CaptureResult, cal: Calibration, options: NovelViewOptions
+) -> dict[str, Any]:
+    """Write the mesh and novel views of one processed capture into ``folder``.
 
-    The reference view's object-space centre is ``(b_ref, Z_c)``; its ray through
-    rectified pixel p passes the board point ``B(p)`` at ``Z_b``, so the point at
-    depth Z is ``C + (B - C)(Z - Z_c)/(Z_b - Z_c)``. Lateral positions need the
-    pattern pitch; the lenslet array is taken as centred on the lens axis
-    (``sum_i b_i = 0``). Without a pitch, X and Y are in rectified pixels at
-    ``Z_b`` (units ``"board px"``).
+    Called by :func:`write_capture` inside its atomic folder. PNGs are
+    gamma-encoded like the other previews; holes (nothing seen) are black.
 
     Returns
     -------
-    points : (M, 3) float32
-    index : (M, 2) int64
-        Row and column of each point in the rectified frame.
-    units : str
-        ``"m"`` or ``"board px"`` for X and Y.
+    dict
+        What was written, for ``result.json``.
     """
-    vv, uu = np.nonzero(np.isfinite(depth))
-    Z = depth[vv, uu].astype(np.float64)
-    sx, sy = cal.pattern_shape[1] / cal.rect_shape[1], cal.pattern_shape[0] / cal.rect_shape[0]
-    xp = (uu + 0.5) * sx - 0.5 - (cal.pattern_shape[1] - 1) / 2.0
-    yp = (vv + 0.5) * sy - 0.5 - (cal.pattern_shape[0] - 1) / 2.0
-    metric_xy = np.isfinite(cal.pattern_pitch)
-    if metric_xy:
-        pitch_rect = cal.pattern_pitch * sx
-        B = np.stack([xp * cal.pattern_pitch, yp * cal.pattern_pitch], 1)
-    else:
-        pitch_rect = 1.0
-        B = np.stack([uu, vv], 1).astype(np.float64)
-    if cal.metric:
-        b_ref = -cal.offsets.mean(axis=0) * pitch_rect
-        f = (Z - cal.z_c) / (cal.z_b - cal.z_c)
-        XY = b_ref + (B - b_ref) * f[:, None]
-    else:
-        XY = B
-    pts = np.column_stack([XY, Z]).astype(np.float32)
-    return pts, np.stack([vv, uu], 1), "m" if metric_xy else "board px"
-
-
-def write_ply(path: str | os.PathLike[str], points: np.ndarray, colours: np.ndarray) -> None:
-    """Binary little-endian PLY: float32 x, y, z and uint8 red, green, blue per vertex."""
-    n = len(points)
-    header = (
-        "ply\nformat binary_little_endian 1.0\ncomment written by lfcam\n"
-        f"element vertex {n}\nproperty float x\nproperty float y\nproperty float z\n"
-        "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n"
-    ).encode("ascii")
-    rec = np.empty(n, dtype=[("p", "<f4", 3), ("c", "u1", 3)])
-    rec["p"] = points
-    rec["c"] = colours
-    with open(path, "wb") as fh:
-        fh.write(header)
-        fh.write(rec.tobytes())
-
-
-def _to_u8(img: np.ndarray) -> np.ndarray:
-    x = np.nan_to_num(img, nan=0.0)
-    return np.round(np.clip(x, 0, 1) ** (1 / 2.2) * 255).astype(np.uint8)
-
-
-def _to_u16(img: np.ndarray) -> np.ndarray:
-    """Linear [0, 1] -> 16-bit with the same display gamma (1/2.2) as the previews."""
-    x = np.nan_to_num(img, nan=0.0)
-    out: np.ndarray = np.round(np.clip(x, 0, 1) ** (1 / 2.2) * 65535).astype(np.uint16)
-    return out
+    out = Path(folder)
+    depth = result.depth.depth
+    if depth is None:
+        raise InputError("result: meshes and novel views need metric depth")
+    t0 = time.perf_counter()
+    mesh = mesh_from_depth(depth, cal, result.views[cal.reference])
+    info: dict[str, Any] = {
+        "mesh_max_ratio": DEFAULT_MAX_RATIO,
+        "mesh_vertices": len(mesh.vertices),
+        "mesh_faces": len(mesh.faces),
+    }
+    if options.mesh:
+        write_mesh_ply(out / "mesh.ply", mesh)
+    if options.pose is not None:
+        r = render_mesh(mesh, cal, options.pose)
+        write_image(out / "novel_view.png", encode_u8(r.image))
+        write_image(out / "novel_view_depth.tiff", r.depth)
+        info["novel_view_pose"] = options.pose.tolist()
+        info["novel_view_coverage"] = float(r.mask.mean())
+    if options.orbit > 0:
+        (out / "orbit").mkdir()
+        H, W = cal.rect_shape
+        video = cv2.VideoWriter(str(out / "orbit.mp4"), cv2.VideoWriter.fourcc(*"mp4v"), 12, (W, H))
+        try:
+            for k, pose in enumerate(orbit_poses(cal, options.orbit)):
+                rgb = encode_u8(render_mesh(mesh, cal, pose).image)
+                if rgb.ndim == 2:
+                    rgb = np.repeat(rgb[..., None], 3, 2)
+                write_image(out / "orbit" / f"frame_{k:03d}.png", rgb)
+                video.write(np.ascontiguousarray(rgb[..., ::-1]))
+        finally:
+            video.release()
+        info["orbit_frames"] = options.orbit
+    info["novel_views_s"] = time.perf_counter() - t0
+    return info
 
 
 def write_capture(
@@ -172,10 +132,10 @@ def write_capture(
     and, with ``save_views``, ``views/view_RR_CC.png``; ``superres.png`` and
     ``refocus_<Z>m.png`` (16-bit RGB, display gamma 1/2.2) when the result has them;
     with ``novel``, the mesh and novel views it asks for
-    (:func:`lfcam.render.write_novel_views`).
+    (:func:`write_novel_views`).
     """
     out = Path(out_dir)
-    with _atomic_folder(out) as tmp:
+    with atomic_folder(out) as tmp:
         d = result.depth
         ref_view = result.views[cal.reference]
         depth = d.depth if d.depth is not None else d.relative
@@ -184,20 +144,17 @@ def write_capture(
         write_image(tmp / "depth.png", colour_depth(depth))
         write_image(tmp / "confidence.tiff", d.confidence.astype(np.float32))
         pts, idx, units = points_from_depth(depth, cal)
-        colours = _to_u8(ref_view[idx[:, 0], idx[:, 1]])
-        if colours.ndim == 1:
-            colours = np.repeat(colours[:, None], 3, 1)
-        write_ply(tmp / "points.ply", pts, colours)
+        write_ply(tmp / "points.ply", pts, rgb_u8(ref_view[idx[:, 0], idx[:, 1]]))
         if result.superres is not None:
-            write_image(tmp / "superres.png", _to_u16(result.superres))
+            write_image(tmp / "superres.png", encode_u16(result.superres))
         for z, img in result.refocused.items():
-            write_image(tmp / f"refocus_{z:g}m.png", _to_u16(img))
+            write_image(tmp / f"refocus_{z:g}m.png", encode_u16(img))
         if save_views:
             (tmp / "views").mkdir()
             C = cal.grid[1]
             for i, v in enumerate(result.views):
                 r, c = divmod(i, C)
-                write_image(tmp / "views" / f"view_{r}_{c}.png", _to_u8(v))
+                write_image(tmp / "views" / f"view_{r}_{c}.png", encode_u8(v))
         finite = np.isfinite(depth)
         seen = cal.masks[cal.reference]
         stats = {
@@ -217,8 +174,6 @@ def write_capture(
         }
         novel_info: dict[str, Any] = {}
         if novel is not None and novel.any:
-            from .render import write_novel_views
-
             novel_info = {"novel_views": write_novel_views(tmp, result, cal, novel)}
         info = {
             "source": result.source,
@@ -233,67 +188,6 @@ def write_capture(
         }
         (tmp / "result.json").write_text(json.dumps(info, indent=2, default=str))
     return out
-
-
-@contextlib.contextmanager
-def _atomic_folder(out: Path) -> Iterator[Path]:
-    """Yield a temporary folder beside ``out``; when the block succeeds, it becomes ``out``.
-
-    An existing ``out`` is replaced only then; on any error the temporary folder is
-    removed and ``out`` is left as it was.
-    """
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
-    try:
-        yield tmp
-        mode = _file_mode()
-        for p in tmp.rglob("*"):
-            os.chmod(p, (mode | 0o111) if p.is_dir() else mode)
-        os.chmod(tmp, mode | 0o111)
-        if out.exists():
-            shutil.rmtree(out)
-        os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-
-
-def points_from_lightfield(depth: np.ndarray, lf: LightField) -> tuple[np.ndarray, np.ndarray]:
-    """3-D points (metres) of finite depths, in the reference camera's frame.
-
-    Pinhole model of the HCI rig: X right, Y down, Z along the optical axis, origin at
-    the reference camera; focal length ``f_px`` from the rig parameters. The views
-    converge (shifted sensors): the principal point of view i is the image centre
-    moved by ``-offset * o_i'``, with ``o_i'`` its parallax vector relative to the
-    grid's centre (infinity, at disparity ``-offset``, appears there).
-
-    Returns
-    -------
-    points : (M, 3) float32
-    index : (M, 2) int64
-        Row and column of each point in the reference view.
-    """
-    p = lf.parameters
-    if p is None:
-        raise InputError("lf: the light field has no rig parameters; no metric points")
-    H, W = depth.shape
-    f = p.focal_px(W)
-    offset = p.offset_for(W)
-    if p.grid is not None:
-        r_mid, c_mid = (p.grid[0] - 1) / 2.0, (p.grid[1] - 1) / 2.0
-    else:
-        r_mid = (min(lf.rows) + max(lf.rows)) / 2.0
-        c_mid = (min(lf.cols) + max(lf.cols)) / 2.0
-    sx = -1.0 if "x" in lf.flip else 1.0
-    sy = -1.0 if "y" in lf.flip else 1.0
-    r_ref, c_ref = lf.reference_rc
-    cx = (W - 1) / 2.0 + offset * sx * (c_ref - c_mid)
-    cy = (H - 1) / 2.0 + offset * sy * (r_ref - r_mid)
-    vv, uu = np.nonzero(np.isfinite(depth))
-    Z = depth[vv, uu].astype(np.float64)
-    X = (uu - cx) * Z / f
-    Y = (vv - cy) * Z / f
-    return np.column_stack([X, Y, Z]).astype(np.float32), np.stack([vv, uu], 1)
 
 
 def _finite_or_none(obj: Any) -> Any:
@@ -343,12 +237,10 @@ def write_lightfield(
     info : dict
         What ``result.json`` holds.
     """
-    from .lightfield import BADPIX_THRESHOLD, HCI_BORDER, disparity_metrics
-
     out = Path(out_dir)
     disp = result.parallax.astype(np.float32)
     finite = np.isfinite(disp)
-    with _atomic_folder(out) as tmp:
+    with atomic_folder(out) as tmp:
         write_image(tmp / "disparity.tiff", disp)
         write_pfm(tmp / "disparity.pfm", disp)
         write_image(tmp / "disparity.png", colour_depth(disp, unit="px", near_high=True))
@@ -379,11 +271,8 @@ def write_lightfield(
             write_image(tmp / "depth.tiff", depth)
             write_image(tmp / "depth.png", colour_depth(depth))
             pts, idx = points_from_lightfield(depth, lf)
-            ref = _to_u8(lf.to_float()[lf.reference])
-            colours = ref[idx[:, 0], idx[:, 1]]
-            if colours.ndim == 1:
-                colours = np.repeat(colours[:, None], 3, 1)
-            write_ply(tmp / "points.ply", pts, colours)
+            ref = lf.to_float()[lf.reference]
+            write_ply(tmp / "points.ply", pts, rgb_u8(ref[idx[:, 0], idx[:, 1]]))
             info["depth_units"] = "m"
             info["xy_units"] = "m"
             info["points_frame"] = (

@@ -1,7 +1,7 @@
 """The :class:`Calibration` type and its file, ``.lfcal`` (HDF5).
 
 A calibration holds everything processing needs from the once-per-camera calibration
-(DESIGN.md sections 2, 4 and 6). It is validated when it is built, before it is saved
+(docs/design.md, "Calibration file"). It is validated when it is built, before it is saved
 and when it is loaded, by one function, so an invalid calibration cannot exist in
 memory or on disk. Loading never runs code from the file: only numbers, plain strings
 and a JSON document are read.
@@ -63,12 +63,10 @@ any float or integer dtype for the float ones, and 0/1 integers or booleans for
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import os
 import re
-import secrets
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from datetime import datetime, timezone
@@ -79,8 +77,9 @@ import h5py  # type: ignore[import-untyped]
 import numpy as np
 from numpy.typing import NDArray
 
-from ._lfcam import __version__
-from .errors import CalibrationError, InputError
+from .._lfcam import __version__
+from ..errors import CalibrationError, InputError
+from ..io import BAYER_PATTERNS, atomic_output, file_hash
 
 __all__ = ["BAYER_PATTERNS", "FORMAT_NAME", "FORMAT_VERSION", "Calibration", "file_hash", "info"]
 
@@ -90,8 +89,6 @@ FORMAT_NAME = "lfcam-calibration"
 FORMAT_VERSION = (1, 0)
 """(MAJOR, MINOR) of the file format this module writes and reads (and older MINORs)."""
 
-BAYER_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
-"""The accepted values of :attr:`Calibration.bayer` (besides None)."""
 
 # Datasets stored chunked + compressed + checksummed.
 _COMPRESSED = ("warps", "masks", "gains")
@@ -397,7 +394,7 @@ def _validate(values: Mapping[str, Any], where: str) -> dict[str, Any]:
 
 @dataclass(eq=False)
 class Calibration:
-    """Everything processing needs from a camera's calibration (DESIGN.md section 4).
+    """Everything processing needs from a camera's calibration (docs/design.md, "Calibration file").
 
     Built by the calibration steps, saved with :meth:`save` and read back with
     :meth:`load`. Every field is validated on construction (and again by :meth:`save`,
@@ -542,17 +539,8 @@ class Calibration:
             raise InputError(f"{p}: folder {p.parent} does not exist")
         if p.is_dir():
             raise InputError(f"{p}: is a folder")
-        tmp = p.with_name(f".{p.name}.{secrets.token_hex(6)}.tmp")
-        try:
-            # "x": create, fail if it exists; permissions follow the umask.
-            with h5py.File(tmp, "x") as f:
-                _write(f, values)
-            with open(tmp, "rb+") as fh:
-                os.fsync(fh.fileno())
-            os.replace(tmp, p)
-        except BaseException:
-            tmp.unlink(missing_ok=True)
-            raise
+        with atomic_output(p) as tmp, h5py.File(tmp, "w") as f:
+            _write(f, values)
         return p
 
     # ----------------------------------------------------------------------- reading
@@ -879,35 +867,6 @@ def _read(path: str | os.PathLike[str]) -> tuple[dict[str, Any], dict[str, Any]]
     raw["report"] = _parse_report(raw["report"], where)
     raw["software_version"] = header["software_version"]
     return _validate(raw, where), header
-
-
-def file_hash(path: str | os.PathLike[str]) -> str:
-    """SHA-256 of a file's bytes, as 64 hex digits.
-
-    Processing outputs record it to say which calibration they used.
-
-    Parameters
-    ----------
-    path : path-like
-        Any file, usually an ``.lfcal``.
-
-    Returns
-    -------
-    str
-
-    Raises
-    ------
-    InputError
-        If ``path`` is not an existing file.
-    """
-    p = Path(path)
-    if not p.is_file():
-        raise InputError(f"{p}: no such file")
-    h = hashlib.sha256()
-    with open(p, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def info(path: str | os.PathLike[str]) -> str:

@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from lfcam import _lfcam
+import lfcam._lfcam as _lfcam
 from lfcam._validate import as_image, as_int_array
 
 __all__ = ["crop_lenslets"]

@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from lfcam import _lfcam
+import lfcam._lfcam as _lfcam
 from lfcam.errors import InputError
 
 __all__ = ["nan_median"]

@@ -1,6 +1,6 @@
 """The digital calibration pattern and the procedural textures of the simulator.
 
-The pattern is what the camera is calibrated against (DESIGN.md section 4): dense
+The pattern is what the camera is calibrated against (docs/design.md, "Calibration pipeline"): dense
 texture at every scale from a few pixels to a large fraction of the image, so
 that optical flow can lock onto it everywhere, and a clear cross at the centre
 for the coarse alignment of each view.
@@ -11,7 +11,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ._validate import check_positive_int
+from .._validate import check_positive_int
 
 __all__ = ["make_pattern", "multiscale_noise", "procedural_texture"]
 

@@ -1,10 +1,10 @@
-"""Super-resolution from the raw samples, and synthetic-aperture refocus (DESIGN.md
-section 5; paper section 5.2; Farsiu, Robinson, Elad, Milanfar 2003 and 2004).
+"""Super-resolution from the raw samples (docs/design.md, "Super-resolution"; paper section
+5.2; Farsiu, Robinson, Elad, Milanfar 2003 and 2004).
 
 Super-resolution never fuses rectified (already interpolated) pixels: every raw sample
 of every view is placed at its sub-pixel position in the reference view's rectified
 frame, by inverting the view's warp map (raw -> its rectified position ``q``) and
-undoing the parallax (``p + o_i s(p) = q``, DESIGN.md section 3). The samples are
+undoing the parallax (``p + o_i s(p) = q``, docs/design.md, "Plane and parallax"). The samples are
 fused on an ``r``-times finer grid by a robust (L1-like, reweighted) shift-and-add,
 holes are filled, and the result is deblurred with bilateral-TV regularisation. All
 per-sample and per-pixel work runs in the Rust core with the GIL released.
@@ -22,21 +22,19 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from lfcam import _lfcam
-from lfcam.calibration import Calibration
-from lfcam.depth import DepthResult
-from lfcam.errors import InputError
-from lfcam.io import demosaic
+import lfcam._lfcam as _lfcam
+
+from ..calibration import Calibration
+from ..errors import InputError
+from ..io import demosaic
+from ..processing import DepthResult
 
 __all__ = [
     "SuperResParams",
-    "all_in_focus",
     "fill_holes",
     "inverse_maps",
-    "parallax_at_depth",
     "place_raw_samples",
     "raw_samples",
-    "refocus",
     "shift_and_add",
     "super_resolve",
 ]
@@ -46,7 +44,8 @@ _SCALE = {np.dtype(np.uint8): 1 / 255, np.dtype(np.uint16): 1 / 65535, np.dtype(
 
 @dataclass(frozen=True)
 class SuperResParams:
-    """Tuning of :func:`super_resolve` (defaults tuned on the simulator, 2x).
+    """Tuning of :func:`super_resolve` (defaults tuned on the simulator, 2x; why each
+    has its value: docs/tuning.md, "Super-resolution and refocus").
 
     Attributes
     ----------
@@ -81,11 +80,6 @@ class SuperResParams:
         Smoothing of the sign function, image units.
     """
 
-    # Speed (issue 6): one reweighting pass instead of 2 and 15 BTV iterations instead
-    # of 20 cost 0.08 dB of mean PSNR gain over bicubic on the simulator's four scenes
-    # (+3.13 -> +3.05 dB; per scene +2.32, +3.00, +2.70, +4.17) and save a third of
-    # the shift-and-add and a quarter of the deblurring. Larger BTV steps with fewer
-    # iterations lose decibels (10 x 0.04: +0.38 dB mean): the step stays.
     kernel_sigma: float = 0.4
     kernel_radius: int = 1
     robust_iterations: int = 1
@@ -205,7 +199,7 @@ def _sample_factors(cal: Calibration, dtype: np.dtype) -> NDArray[np.float32]:
     return factors
 
 
-def _parallax(depth: DepthResult | ArrayLike, cal: Calibration) -> NDArray[np.float32]:
+def parallax_map(depth: DepthResult | ArrayLike, cal: Calibration) -> NDArray[np.float32]:
     s = depth.parallax if isinstance(depth, DepthResult) else np.asarray(depth)
     if s.shape != tuple(cal.rect_shape):
         raise InputError(
@@ -246,7 +240,7 @@ def place_raw_samples(
         ``(x, y)`` in the reference view's rectified frame; NaN: not used.
     """
     inv, view = inverse_maps(cal)
-    s = _parallax(depth, cal)
+    s = parallax_map(depth, cal)
     offsets = np.ascontiguousarray(cal.offsets, np.float64)
     return _lfcam.place_samples(inv, view, offsets, s, int(iterations), float(tolerance))
 
@@ -554,196 +548,3 @@ def super_resolve(
     return _lfcam.btv_deblur(
         z, a, None, psf, p.lam, p.alpha, p.window, p.deblur_iterations, p.step, p.eps
     )
-
-
-def parallax_at_depth(cal: Calibration, depth_m: float) -> float:
-    """The parallax ``s`` of a plane at ``depth_m`` metres (metric calibrations):
-    ``s = 1 - (Z_b - Z_c) / (Z - Z_c)`` (DESIGN.md section 3)."""
-    if not cal.metric:
-        raise InputError(
-            "depth_m: the calibration is relative (no Z_c); pass the parallax s instead"
-        )
-    z = float(depth_m)
-    if not (z > cal.z_c):
-        raise InputError(f"depth_m: must be beyond Z_c = {cal.z_c:.3f} m, got {depth_m!r}")
-    return 1.0 - (cal.z_b - cal.z_c) / (z - cal.z_c)
-
-
-def _check_views(views: ArrayLike, cal: Calibration) -> NDArray[np.float32]:
-    v = np.asarray(views)
-    if v.ndim != 4 or v.shape[0] != cal.n_views or tuple(v.shape[1:3]) != tuple(cal.rect_shape):
-        raise InputError(
-            f"views: shape {v.shape} does not match the calibration"
-            f" ({cal.n_views}, {cal.rect_shape[0]}, {cal.rect_shape[1]}, C)"
-        )
-    return np.ascontiguousarray(v, np.float32)
-
-
-def _is_raw(frames: ArrayLike, cal: Calibration) -> bool:
-    """Whether ``frames`` is a raw frame (else rectified views)."""
-    shape = np.shape(frames)
-    return len(shape) in (2, 3) and tuple(shape[:2]) == tuple(cal.raw_shape)
-
-
-def _aperture_views(cal: Calibration, aperture: float) -> NDArray[np.bool_]:
-    if not (0.0 <= float(aperture) <= 1.0):
-        raise InputError(f"aperture: expected a fraction in [0, 1], got {aperture!r}")
-    off = np.asarray(cal.offsets, np.float64)
-    rad = np.hypot(off[:, 0], off[:, 1])
-    return np.asarray(rad <= float(aperture) * rad.max() + 1e-9)
-
-
-def _fuse(
-    positions: NDArray[np.float32],
-    values: NDArray[np.float32],
-    shape: tuple[int, int],
-    weights: NDArray[np.float32] | None,
-    sigma: float,
-    iterations: int = 0,
-) -> NDArray[np.float32]:
-    radius = 1 if sigma > 0 else 0
-    sums, wsum = shift_and_add(
-        positions,
-        values,
-        shape,
-        1,
-        weights=weights,
-        sigma=sigma,
-        radius=radius,
-        iterations=iterations,
-        huber=SuperResParams.huber,
-        reject=SuperResParams.reject,
-    )
-    with np.errstate(invalid="ignore", divide="ignore"):
-        out = sums / wsum[..., None]
-    return fill_holes(out.astype(np.float32), wsum)
-
-
-def refocus(
-    frames: ArrayLike,
-    cal: Calibration,
-    depth_m: float | None = None,
-    *,
-    parallax: float | None = None,
-    aperture: float = 1.0,
-    sigma: float = 0.35,
-) -> NDArray[np.float32]:
-    """Synthetic-aperture refocus at one depth (DESIGN.md section 5).
-
-    Every sample of view ``i`` at rectified ``q`` is shifted to ``q - o_i s_f``
-    (``s_f``: the parallax of the focus plane) and the views are averaged with the
-    shift-and-add kernel on the rectified grid: the focus plane stays sharp, other
-    depths blur in proportion to ``|s - s_f|`` times the aperture's extent.
-
-    Given the raw frame, the samples are the raw pixels themselves (placed through
-    the inverse warp maps, as in :func:`super_resolve`): the focus plane is then as
-    sharp as the rectified reference view. Given rectified views, their (already
-    interpolated) pixels are shifted, which softens the focus plane a little (about
-    7% less gradient energy on the simulator).
-
-    Parameters
-    ----------
-    frames : (H_raw, W_raw[, 3]) raw frame or (N, H_rect, W_rect, C) float32 views
-        The capture (uint8, uint16 or float32), or its rectified views
-        (:func:`lfcam.rectify`, NaN where a view does not see).
-    cal : Calibration
-        The camera.
-    depth_m : float, optional
-        Focus distance, metres (metric calibrations).
-    parallax : float, optional
-        The focus plane's ``s`` instead of ``depth_m``.
-    aperture : float
-        Synthetic aperture as a fraction of the lenslet array's extent: views with
-        ``|o_i| <= aperture * max |o_j|`` are used (0: the reference view alone).
-        Fewer views also mean fewer samples per pixel: small apertures come out
-        softer, even at the focus plane.
-    sigma : float
-        Gaussian splat kernel, px (0: nearest pixel).
-
-    Returns
-    -------
-    (H_rect, W_rect, C) float32
-        In the reference view's rectified frame.
-
-    Raises
-    ------
-    InputError
-        Naming the argument: frames of neither shape, both or neither of
-        ``depth_m`` and ``parallax``, a depth not beyond ``Z_c``, an aperture outside
-        [0, 1].
-
-    Examples
-    --------
-    >>> img = lfcam.refocus(raw, cal, 0.8)  # doctest: +SKIP
-    """
-    if (depth_m is None) == (parallax is None):
-        raise InputError("depth_m: give exactly one of depth_m and parallax")
-    if depth_m is not None:
-        s_f = parallax_at_depth(cal, depth_m)
-    else:
-        s_f = float(parallax)  # type: ignore[arg-type]
-        if not math.isfinite(s_f):
-            raise InputError(f"parallax: must be finite, got {parallax!r}")
-    use = _aperture_views(cal, aperture)
-    H, W = (int(x) for x in cal.rect_shape)
-    if _is_raw(frames, cal):
-        values = raw_samples(frames, cal)
-        pos = place_raw_samples(cal, np.full((H, W), s_f, np.float32))
-        _, view = inverse_maps(cal)
-        weights = np.isin(view, np.flatnonzero(use)).astype(np.float32)
-        return _fuse(pos, values, (H, W), weights, sigma)
-    v = _check_views(frames, cal)
-    N = v.shape[0]
-    yy, xx = np.mgrid[0:H, 0:W].astype(np.float32)
-    off = np.asarray(cal.offsets, np.float32)
-    positions = np.empty((N, H, W, 2), np.float32)
-    positions[..., 0] = xx[None] - off[:, 0, None, None] * np.float32(s_f)
-    positions[..., 1] = yy[None] - off[:, 1, None, None] * np.float32(s_f)
-    w = np.ascontiguousarray(np.broadcast_to(use[:, None, None], (N, H, W)), np.float32)
-    return _fuse(positions, v, (H, W), w, sigma)
-
-
-def all_in_focus(
-    frames: ArrayLike,
-    cal: Calibration,
-    depth: DepthResult | ArrayLike,
-    *,
-    sigma: float = 0.35,
-) -> NDArray[np.float32]:
-    """All-in-focus image: every sample goes to the reference point it shows
-    (``p + o_i s(p) = q``, with the capture's own parallax), so every depth is in
-    focus at once; occluded samples are rejected (no consistent ``p``, or by the
-    robust fusion). It is the shift-and-add of :func:`super_resolve` at factor 1,
-    without deblurring: the views' noise averages out.
-
-    Parameters
-    ----------
-    frames : raw frame or (N, H_rect, W_rect, C) float32 views
-        As in :func:`refocus`.
-    cal : Calibration
-        The camera.
-    depth : DepthResult or (H_rect, W_rect) array
-        Depth result or parallax ``s``.
-    sigma : float
-        Splat kernel, px.
-
-    Returns
-    -------
-    (H_rect, W_rect, C) float32
-    """
-    s = _parallax(depth, cal)
-    H, W = (int(x) for x in cal.rect_shape)
-    robust = SuperResParams.robust_iterations
-    if _is_raw(frames, cal):
-        pos = place_raw_samples(cal, s)
-        return _fuse(pos, raw_samples(frames, cal), (H, W), None, sigma, robust)
-    v = _check_views(frames, cal)
-    N = v.shape[0]
-    yy, xx = np.mgrid[0:H, 0:W].astype(np.float32)
-    grid = np.ascontiguousarray(np.broadcast_to(np.stack([xx, yy], -1), (N, H, W, 2)))
-    view = np.ascontiguousarray(
-        np.broadcast_to(np.arange(N, dtype=np.int32)[:, None, None], (N, H, W))
-    )
-    offsets = np.ascontiguousarray(cal.offsets, np.float64)
-    pos = _lfcam.place_samples(grid, view, offsets, s, 6, 0.25)
-    return _fuse(pos, v, (H, W), None, sigma, robust)

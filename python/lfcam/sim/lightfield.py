@@ -4,8 +4,8 @@ A :class:`LightField` holds R x C views of one scene taken from a regular grid o
 camera positions (a camera array, a gantry, a rendered light field such as the HCI
 4D benchmark's), already rectified: a scene point moves along the grid's rows and
 columns only. Its views feed the same depth chain as a calibrated lfcam capture
-(DESIGN.md section 3: flow from the reference view to every view, then robust
-triangulation of the parallax ``s``).
+(flow from the reference view to every view, then robust triangulation of the
+parallax ``s``; docs/design.md, "Light fields from elsewhere").
 
 Convention (HCI 4D benchmark): a larger column index means the camera sits further
 right, a larger row index further down, and a scene point at reference pixel
@@ -32,25 +32,18 @@ from typing import Any, Literal, Union
 
 import numpy as np
 
-from .depth import DepthResult, depth_from_views
-from .errors import InputError
-from .io import read_image, read_pfm, to_float
+from ..errors import InputError
+from ..io import IMAGE_EXTENSIONS, read_image, read_pfm, to_float
+from ..processing import DepthParams, DepthResult, depth_from_views
 
 __all__ = [
-    "HCI_BORDER",
     "LightField",
     "RigParameters",
     "ViewSelection",
-    "disparity_metrics",
     "parse_views",
+    "points_from_lightfield",
 ]
 
-#: Border (px) the HCI benchmark leaves out when scoring (``boundary_offset``).
-HCI_BORDER = 15
-#: BadPix threshold (px) of the HCI benchmark's headline metric.
-BADPIX_THRESHOLD = 0.07
-
-_IMAGE_EXT = (".png", ".tif", ".tiff", ".jpg", ".jpeg")
 _HCI_NAME = re.compile(r"^input_Cam(\d+)\.png$", re.IGNORECASE)
 _INT = re.compile(r"\d+")
 _GT_NAME = "gt_disp_lowres.pfm"
@@ -235,53 +228,6 @@ def _select(spec: slice | int | Sequence[int], present: Sequence[int], name: str
     return picked
 
 
-def disparity_metrics(
-    disparity: np.ndarray,
-    ground_truth: np.ndarray,
-    *,
-    border: int = 0,
-    threshold: float = BADPIX_THRESHOLD,
-) -> dict[str, float]:
-    """The HCI benchmark's scores of a disparity map.
-
-    Parameters
-    ----------
-    disparity, ground_truth : (H, W) arrays
-        Estimate and truth, px per grid step.
-    border : int
-        Pixels left out on every side (the benchmark uses 15).
-    threshold : float
-        BadPix threshold, px.
-
-    Returns
-    -------
-    dict
-        ``badpix_percent`` (percent of pixels with ``|d - gt| > threshold``; a missing (NaN)
-        estimate counts as bad), ``mse_x100`` (100 x the mean squared error over the
-        pixels with an estimate), ``coverage`` (share of pixels with an estimate) and
-        ``pixels`` scored.
-    """
-    d = np.asarray(disparity, np.float64)
-    g = np.asarray(ground_truth, np.float64)
-    if d.shape != g.shape or d.ndim != 2:
-        raise InputError(f"disparity: shape {d.shape} does not match the ground truth's {g.shape}")
-    b = int(border)
-    if b < 0 or 2 * b >= min(d.shape):
-        raise InputError(f"border: {border} leaves nothing of a {d.shape[1]}x{d.shape[0]} image")
-    if b:
-        d, g = d[b:-b, b:-b], g[b:-b, b:-b]
-    ok = np.isfinite(g)
-    err = d[ok] - g[ok]
-    have = np.isfinite(err)
-    bad = ~have | (np.abs(np.where(have, err, 0.0)) > threshold)
-    return {
-        "badpix_percent": float(100.0 * bad.mean()) if bad.size else math.nan,
-        "mse_x100": float(100.0 * np.mean(err[have] ** 2)) if have.any() else math.nan,
-        "coverage": float(have.mean()) if have.size else 0.0,
-        "pixels": int(ok.sum()),
-    }
-
-
 def _find_views(folder: Path) -> tuple[str, dict[tuple[int, int], Path], RigParameters | None]:
     """(layout, {(row, col): file}, parameters) of a folder of views."""
     files = sorted(p for p in folder.iterdir() if p.is_file() and not p.name.startswith("."))
@@ -323,7 +269,7 @@ def _find_views(folder: Path) -> tuple[str, dict[tuple[int, int], Path], RigPara
             found[divmod(k, cols)] = p
         return "hci", found, params
     for p in files:
-        if p.suffix.lower() not in _IMAGE_EXT:
+        if p.suffix.lower() not in IMAGE_EXTENSIONS:
             continue
         ints = _INT.findall(p.stem)
         if len(ints) != 2:
@@ -387,7 +333,7 @@ class LightField:
     -----
     ``o_i = (-s_x (c_i - c_ref), -s_y (r_i - r_ref))`` with ``s_x, s_y = -1`` for a
     flipped axis, else ``+1``: the reference pixel ``p`` appears at ``p + o_i s``
-    in view ``i`` (DESIGN.md section 3), and ``s`` equals the HCI benchmark's
+    in view ``i`` (docs/design.md, "Plane and parallax"), and ``s`` equals the HCI benchmark's
     disparity (px per grid step). A subset keeps absolute indices, so rows 2, 4, 6
     give offsets of 2 px per unit ``s``, and ``s`` is still disparity per grid step.
 
@@ -694,7 +640,7 @@ class LightField:
             z = self.parameters.baseline_m * f_px / d
         return np.where(d > 0, z, np.nan).astype(np.float32)
 
-    def estimate_depth(self, **kwargs: Any) -> DepthResult:
+    def estimate_depth(self, params: DepthParams | None = None, *, threads: int = 2) -> DepthResult:
         """Disparity (and depth) of the reference view by flow and triangulation.
 
         Calls :func:`lfcam.depth_from_views` with the views as float32 in [0, 1],
@@ -702,9 +648,10 @@ class LightField:
 
         Parameters
         ----------
-        **kwargs
-            Passed to :func:`lfcam.depth_from_views` (``threads``, ``flow``, and the
-            triangulation's options).
+        params : DepthParams, optional
+            The depth chain's settings.
+        threads : int
+            Concurrent flows.
 
         Returns
         -------
@@ -712,7 +659,9 @@ class LightField:
             ``parallax`` is the disparity (px per grid step, HCI sign); ``depth``
             (metres) is filled when the rig is known (:attr:`metric`).
         """
-        res = depth_from_views(self.to_float(), self.offsets, self.reference, **kwargs)
+        res = depth_from_views(
+            self.to_float(), self.offsets, self.reference, params, threads=threads
+        )
         if self.metric:
             res.depth = self.disparity_to_depth(res.parallax)
         return res
@@ -747,3 +696,41 @@ def _span(idx: Sequence[int]) -> str:
 
 def _kind(img: np.ndarray) -> str:
     return f"{'RGB' if img.ndim == 3 else 'grey'} {img.dtype}"
+
+
+def points_from_lightfield(depth: np.ndarray, lf: LightField) -> tuple[np.ndarray, np.ndarray]:
+    """3-D points (metres) of finite depths, in the reference camera's frame.
+
+    Pinhole model of the HCI rig: X right, Y down, Z along the optical axis, origin at
+    the reference camera; focal length ``f_px`` from the rig parameters. The views
+    converge (shifted sensors): the principal point of view i is the image centre
+    moved by ``-offset * o_i'``, with ``o_i'`` its parallax vector relative to the
+    grid's centre (infinity, at disparity ``-offset``, appears there).
+
+    Returns
+    -------
+    points : (M, 3) float32
+    index : (M, 2) int64
+        Row and column of each point in the reference view.
+    """
+    p = lf.parameters
+    if p is None:
+        raise InputError("lf: the light field has no rig parameters; no metric points")
+    H, W = depth.shape
+    f = p.focal_px(W)
+    offset = p.offset_for(W)
+    if p.grid is not None:
+        r_mid, c_mid = (p.grid[0] - 1) / 2.0, (p.grid[1] - 1) / 2.0
+    else:
+        r_mid = (min(lf.rows) + max(lf.rows)) / 2.0
+        c_mid = (min(lf.cols) + max(lf.cols)) / 2.0
+    sx = -1.0 if "x" in lf.flip else 1.0
+    sy = -1.0 if "y" in lf.flip else 1.0
+    r_ref, c_ref = lf.reference_rc
+    cx = (W - 1) / 2.0 + offset * sx * (c_ref - c_mid)
+    cy = (H - 1) / 2.0 + offset * sy * (r_ref - r_mid)
+    vv, uu = np.nonzero(np.isfinite(depth))
+    Z = depth[vv, uu].astype(np.float64)
+    X = (uu - cx) * Z / f
+    Y = (vv - cy) * Z / f
+    return np.column_stack([X, Y, Z]).astype(np.float32), np.stack([vv, uu], 1)

@@ -10,7 +10,7 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-from .calibration import Calibration
+from .file import Calibration
 
 __all__ = ["calibration_figure", "flow_colours"]
 

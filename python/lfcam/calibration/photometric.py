@@ -1,4 +1,4 @@
-"""Calibration step 2: photometric gains from white captures (DESIGN.md section 4.2).
+"""Calibration step 2: photometric gains from white captures (docs/design.md, "Photometric gains").
 
 Per pixel and channel, the multiplier that makes the white target come out
 neutral and flat (1.0 in every channel): white balance and vignetting at once.

@@ -1,5 +1,5 @@
 """Plane + parallax triangulation: the parallax ``s`` of every reference pixel from the
-optical flows to all views at once, robustly (DESIGN.md section 3)."""
+optical flows to all views at once, robustly (docs/design.md, "Triangulation")."""
 
 from __future__ import annotations
 
@@ -10,11 +10,19 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from lfcam import _lfcam
-from lfcam._validate import check_positive_int
-from lfcam.errors import InputError
+import lfcam._lfcam as _lfcam
 
-__all__ = ["CONFIDENCE_INFO", "CONFIDENCE_TAU", "MAX_VIEWS", "TriangulationResult", "triangulate"]
+from .._validate import check_positive_int
+from ..errors import InputError
+
+__all__ = [
+    "CONFIDENCE_INFO",
+    "CONFIDENCE_TAU",
+    "MAX_VIEWS",
+    "TriangulationParams",
+    "TriangulationResult",
+    "triangulate",
+]
 
 #: Most views (the reference included) :func:`triangulate` accepts.
 MAX_VIEWS = 128
@@ -22,6 +30,21 @@ MAX_VIEWS = 128
 CONFIDENCE_INFO = 0.25
 #: Residual (px) at which the confidence's second factor is 1/e.
 CONFIDENCE_TAU = 0.5
+
+
+@dataclass(frozen=True)
+class TriangulationParams:
+    """Settings of :func:`triangulate` (see it for the estimator)."""
+
+    #: Fewest surviving views for a parallax; fewer give NaN.
+    min_views: int = 1
+    #: Lower bound of the robust scale, px: flows that agree to better than this are
+    #: not told apart.
+    sigma_floor: float = 0.25
+    #: Tukey's cutoff in robust scales: a view this far off is dropped.
+    cutoff: float = 3.0
+    #: Most reweighted least-squares iterations.
+    iterations: int = 5
 
 
 @dataclass(frozen=True, eq=False)
@@ -84,10 +107,10 @@ def triangulate(
     reference: int,
     weights: ArrayLike | None = None,
     *,
-    min_views: int = 1,
-    sigma_floor: float = 0.25,
-    cutoff: float = 3.0,
-    iterations: int = 5,
+    min_views: int = TriangulationParams.min_views,
+    sigma_floor: float = TriangulationParams.sigma_floor,
+    cutoff: float = TriangulationParams.cutoff,
+    iterations: int = TriangulationParams.iterations,
 ) -> TriangulationResult:
     """Robust parallax ``s`` of every reference pixel from the flows to all views.
 

@@ -1,4 +1,4 @@
-"""Triangle meshes from depth maps (DESIGN.md section 5, "Novel view"; paper section 5.3).
+"""Triangle meshes from depth maps (paper section 5.3).
 
 The reference view's rectified frame is a pixel grid; every 2 x 2 quad of pixels
 gives two triangles (split along the quad's down-right diagonal), and a triangle is
@@ -10,7 +10,7 @@ A smooth surface changes depth by ``tan(slope) / f_px`` per pixel (about 0.1% pe
 pixel for a 60 degree slope with ``f_px`` ~ 1000), so 3% keeps surfaces up to a
 grazing ~85 degrees and cuts occlusion edges, where depth jumps by tens of percent.
 
-Vertices are the 3-D points of :func:`lfcam.outputs.points_from_depth`: metres in the
+Vertices are the 3-D points of :func:`lfcam.products.geometry.points_from_depth`: metres in the
 front lens's frame (X right, Y down, Z forward) when the calibration is metric and
 knows the pattern pitch; otherwise X and Y are in rectified pixels at ``Z_b``
 (``Mesh.units`` says which). Colours come from the reference view (linear, [0, 1]).
@@ -23,10 +23,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .calibration import Calibration
-from .errors import InputError
-from .io import atomic_output
-from .outputs import points_from_depth
+from ..calibration import Calibration
+from ..errors import InputError
+from ..io import rgb_u8, write_ply
+from .geometry import points_from_depth
 
 __all__ = ["DEFAULT_MAX_RATIO", "Mesh", "mesh_from_depth", "write_mesh_ply"]
 
@@ -78,7 +78,7 @@ def mesh_from_depth(
         Depth in the reference view's rectified frame (metres; NaN unknown), e.g.
         ``result.depth.depth``.
     cal : Calibration
-        The camera (for the 3-D positions, see :func:`lfcam.outputs.points_from_depth`).
+        The camera (for the 3-D positions, see :func:`~lfcam.products.geometry.points_from_depth`).
     colours : (H, W) or (H, W, C) float array, optional
         The reference view (linear, [0, 1]); grey 0.5 if not given.
     max_ratio : float
@@ -151,16 +151,6 @@ def mesh_from_depth(
     )
 
 
-def _colours_u8(colours: np.ndarray) -> np.ndarray:
-    """Linear [0, 1] colours -> sRGB-like uint8 RGB (gamma 1/2.2, as the PNG outputs)."""
-    c = np.nan_to_num(np.asarray(colours, np.float64), nan=0.0)
-    if c.ndim == 1:
-        c = c[:, None]
-    if c.shape[1] == 1:
-        c = np.repeat(c, 3, 1)
-    return np.round(np.clip(c[:, :3], 0, 1) ** (1 / 2.2) * 255).astype(np.uint8)
-
-
 def write_mesh_ply(path: str | os.PathLike[str], mesh: Mesh) -> None:
     """Write ``mesh`` as a binary little-endian PLY file, atomically.
 
@@ -175,21 +165,10 @@ def write_mesh_ply(path: str | os.PathLike[str], mesh: Mesh) -> None:
     mesh : Mesh
         From :func:`mesh_from_depth`.
     """
-    n, k = len(mesh.vertices), len(mesh.faces)
-    header = (
-        "ply\nformat binary_little_endian 1.0\ncomment written by lfcam\n"
-        f"comment units {mesh.units}, front-lens frame: X right, Y down, Z forward\n"
-        f"element vertex {n}\nproperty float x\nproperty float y\nproperty float z\n"
-        "property uchar red\nproperty uchar green\nproperty uchar blue\n"
-        f"element face {k}\nproperty list uchar int vertex_indices\nend_header\n"
-    ).encode("ascii")
-    vert = np.empty(n, dtype=[("p", "<f4", 3), ("c", "u1", 3)])
-    vert["p"] = mesh.vertices
-    vert["c"] = _colours_u8(mesh.colours)
-    face = np.empty(k, dtype=[("n", "u1"), ("v", "<i4", 3)])
-    face["n"] = 3
-    face["v"] = mesh.faces
-    with atomic_output(path) as tmp, open(tmp, "wb") as fh:
-        fh.write(header)
-        fh.write(vert.tobytes())
-        fh.write(face.tobytes())
+    write_ply(
+        path,
+        mesh.vertices,
+        rgb_u8(mesh.colours),
+        mesh.faces,
+        comments=[f"units {mesh.units}, front-lens frame: X right, Y down, Z forward"],
+    )

@@ -1,4 +1,5 @@
-"""Calibration step 3: dense warp maps from board captures (DESIGN.md section 4.3).
+"""Calibration step 3: dense warp maps from board captures (docs/design.md, "Geometric
+registration").
 
 For each view: a coarse global alignment of the pattern (SIFT features and a
 RANSAC homography), then OpenCV DIS optical flow between the pattern and the
@@ -14,29 +15,29 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .errors import CalibrationError
-from .flow import FlowParams, dis_flow, prepare
-from .stats import nan_median
-from .warp import remap_bilinear
+from ..errors import CalibrationError
+from ..kernels.flow import FlowParams, dis_flow, prepare
+from ..kernels.stats import nan_median
+from ..kernels.warp import identity_grid, remap
 
-__all__ = ["ViewRegistration", "coarse_homography", "register_view", "remap", "smooth_map"]
+__all__ = ["ViewRegistration", "coarse_homography", "register_view", "smooth_map"]
 
-
-def remap(src: np.ndarray, warp: np.ndarray) -> np.ndarray:
-    """Bilinear sampling of ``src`` (H, W[, C]) at ``warp`` (H', W', 2); NaN outside.
-
-    A sample is NaN when its 2x2 footprint leaves ``src`` or touches a NaN
-    (:func:`lfcam.warp.remap_bilinear`, in the Rust core).
-    """
-    return remap_bilinear(
-        np.ascontiguousarray(src, np.float32), np.ascontiguousarray(warp, np.float32)
-    )
-
-
-def identity_grid(h: int, w: int) -> np.ndarray:
-    """``(h, w, 2)`` float32 grid of pixel coordinates (x, y)."""
-    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
-    return np.stack([xx, yy], -1)
+#: SIFT features per image, and the fewest keypoints and ratio-test matches (Lowe's
+#: ratio ``LOWE_RATIO``) with which the pattern counts as found in a view.
+SIFT_FEATURES = 4000
+MIN_MATCHES = 20
+LOWE_RATIO = 0.8
+#: MAGSAC's inlier threshold (px) and the fewest inliers of an accepted homography.
+HOMOGRAPHY_THRESHOLD_PX = 3.0
+MIN_INLIERS = 15
+#: A blank area of the pattern is bridged by a cubic fit over this many px around it,
+#: from at least HOLE_FIT_MIN_PIXELS known pixels.
+HOLE_FIT_MARGIN = 60
+HOLE_FIT_MIN_PIXELS = 200
+#: The flow/compose iterations stop when the median update is below this (px); a view
+#: whose last update exceeds MAX_LAST_UPDATE_PX did not converge.
+CONVERGED_PX = 0.01
+MAX_LAST_UPDATE_PX = 0.5
 
 
 def coarse_homography(pattern: np.ndarray, view: np.ndarray, *, name: str) -> np.ndarray:
@@ -49,24 +50,28 @@ def coarse_homography(pattern: np.ndarray, view: np.ndarray, *, name: str) -> np
     lfcam.CalibrationError
         If the pattern cannot be found in the view.
     """
-    sift = cv2.SIFT_create(nfeatures=4000)
+    sift = cv2.SIFT_create(nfeatures=SIFT_FEATURES)
     a = prepare(pattern, sigma=12.0)
     b = prepare(view, sigma=12.0)
     ka, da = sift.detectAndCompute(a, None)
     kb, db = sift.detectAndCompute(b, None)
-    if da is None or db is None or len(ka) < 20 or len(kb) < 20:
+    if da is None or db is None or len(ka) < MIN_MATCHES or len(kb) < MIN_MATCHES:
         raise CalibrationError(f"{name}: too little texture to find the calibration pattern")
     matches = cv2.BFMatcher(cv2.NORM_L2).knnMatch(db, da, k=2)
-    good = [m for m, n in (p for p in matches if len(p) == 2) if m.distance < 0.8 * n.distance]
-    if len(good) < 20:
+    good = [
+        m for m, n in (p for p in matches if len(p) == 2) if m.distance < LOWE_RATIO * n.distance
+    ]
+    if len(good) < MIN_MATCHES:
         raise CalibrationError(
             f"{name}: the calibration pattern is not recognisable ({len(good)} feature matches);"
             " is this a capture of the pattern shown by pattern.png?"
         )
     src = np.float32([ka[m.trainIdx].pt for m in good])
     dst = np.float32([kb[m.queryIdx].pt for m in good])
-    H, inl = cv2.findHomography(src, dst, cv2.USAC_MAGSAC, 3.0, maxIters=5000, confidence=0.9999)
-    if H is None or int(inl.sum()) < 15:
+    H, inl = cv2.findHomography(
+        src, dst, cv2.USAC_MAGSAC, HOMOGRAPHY_THRESHOLD_PX, maxIters=5000, confidence=0.9999
+    )
+    if H is None or int(inl.sum()) < MIN_INLIERS:
         raise CalibrationError(f"{name}: could not align the calibration pattern (too few inliers)")
     return H
 
@@ -99,7 +104,11 @@ def low_texture(
 
 
 def fill_holes(
-    warp: np.ndarray, base: np.ndarray, hole: np.ndarray, has: np.ndarray, margin: int = 60
+    warp: np.ndarray,
+    base: np.ndarray,
+    hole: np.ndarray,
+    has: np.ndarray,
+    margin: int = HOLE_FIT_MARGIN,
 ) -> np.ndarray:
     """Replace ``warp`` inside each ``hole`` by a cubic fit of ``warp - base`` around it.
 
@@ -118,7 +127,7 @@ def fill_holes(
         win = (slice(y0, y1), slice(x0, x1))
         d = warp[win] - base[win]
         known = ~hole[win] & has[win] & np.isfinite(d).all(-1)
-        if known.sum() < 200:
+        if known.sum() < HOLE_FIT_MIN_PIXELS:
             out[win][labels[win] == k] = np.nan
             continue
         yy, xx = np.mgrid[y0:y1, x0:x1].astype(np.float64)
@@ -180,7 +189,7 @@ def _refine(
         valid &= ~hole
         last = float(np.median(np.linalg.norm(flow[valid], axis=-1))) if valid.any() else np.inf
         warp = new
-        if last < 0.01:
+        if last < CONVERGED_PX:
             break
     return warp, last, done
 
@@ -245,7 +254,7 @@ def register_view(
     pat_u8 = prepare(pattern)
     hole = low_texture(pattern)
     warp, last, k = _refine(pat_u8, mean, base, params, iterations, base, hole)
-    if not last < 0.5:
+    if not last < MAX_LAST_UPDATE_PX:
         raise CalibrationError(
             f"{name}: optical flow did not converge (last update {last:.2f} px);"
             " is the board flat and the pattern fully visible?"

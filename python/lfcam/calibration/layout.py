@@ -1,4 +1,4 @@
-"""Calibration step 1: the lenslet layout from white captures (DESIGN.md section 4.1).
+"""Calibration step 1: the lenslet layout from white captures (docs/design.md, "Layout").
 
 Finds the R x C lit regions (image circles clipped by each lenslet's baffle),
 their sub-pixel bounding boxes, the common crop rectangle and each image
@@ -12,9 +12,32 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .errors import CalibrationError
+from ..errors import CalibrationError
 
 __all__ = ["Layout", "find_layout"]
+
+#: A pixel brighter than this share of the white capture's 99.5th percentile is lit.
+LIT_THRESHOLD = 0.3
+#: A white capture whose 99.5th percentile is below this (in [0, 1]) is black.
+MIN_WHITE = 0.02
+#: A bright region is an image circle when it holds more than this share of an
+#: R x C cell's area, and the smallest is at least this share of the median.
+MIN_REGION_SHARE = 0.15
+MIN_AREA_RATIO = 0.5
+#: Side (px) of the square that erodes a lit region before its brightness plateau
+#: is fitted, and of the one that grows the fit back over the region's edge.
+PLATEAU_ERODE = 9
+PLATEAU_DILATE = 7
+#: An edge crossing within this many px of the median crossing of its side is on a
+#: straight (baffle) edge; a side with more than STRAIGHT_SHARE such crossings has one.
+STRAIGHT_EDGE_PX = 0.7
+STRAIGHT_SHARE = 0.2
+#: Reweighting rounds of the robust circle fit, and the fewest 1-degree bins of the
+#: edge it needs.
+CIRCLE_ROUNDS = 6
+MIN_EDGE_BINS = 30
+#: The smallest usable view, px per side.
+MIN_VIEW_PX = 16
 
 
 @dataclass
@@ -48,7 +71,7 @@ def _plateau(gray: np.ndarray, labels: np.ndarray, n: int, stats: np.ndarray) ->
     for k in range(n):
         x, y, w, h = (int(v) for v in stats[k, :4])
         sub = labels[y : y + h, x : x + w] == k + 1
-        inner = cv2.erode(sub.astype(np.uint8), np.ones((9, 9), np.uint8)) > 0
+        inner = cv2.erode(sub.astype(np.uint8), np.ones((PLATEAU_ERODE,) * 2, np.uint8)) > 0
         yy, xx = np.nonzero(inner)
         if len(yy) < 50:
             raise CalibrationError("white capture: a lit region is too small to measure")
@@ -66,7 +89,7 @@ def _plateau(gray: np.ndarray, labels: np.ndarray, n: int, stats: np.ndarray) ->
             + coef[4] * U * V
             + coef[5] * V * V
         )
-        region = cv2.dilate(sub.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
+        region = cv2.dilate(sub.astype(np.uint8), np.ones((PLATEAU_DILATE,) * 2, np.uint8)) > 0
         out[y : y + h, x : x + w][region] = fit[region]
     return out
 
@@ -115,7 +138,7 @@ def _circle_from_edge(pts: np.ndarray) -> tuple[np.ndarray, float]:
     """
     keep = np.ones(len(pts), bool)
     c, r = _fit_circle(pts)
-    for _ in range(6):
+    for _ in range(CIRCLE_ROUNDS):
         res = np.abs(np.linalg.norm(pts - c, axis=1) - r)
         keep = res < max(1.0, 3.0 * np.median(res[keep]) * 1.4826)
         ang = np.arctan2(pts[keep, 1] - c[1], pts[keep, 0] - c[0])
@@ -125,7 +148,7 @@ def _circle_from_edge(pts: np.ndarray) -> tuple[np.ndarray, float]:
         np.add.at(sums, bins, pts[keep])
         np.add.at(cnt, bins, 1)
         binned = sums[cnt > 0] / cnt[cnt > 0, None]
-        if len(binned) < 30:
+        if len(binned) < MIN_EDGE_BINS:
             raise CalibrationError("white capture: too little of an image circle's edge is visible")
         c, r = _fit_circle(binned)
     return c, r
@@ -155,12 +178,12 @@ def find_layout(white: np.ndarray, grid: tuple[int, int], *, name: str = "white"
     R, C = grid
     gray = (white.max(axis=2) if white.ndim == 3 else white).astype(np.float32)
     top = float(np.percentile(gray, 99.5))
-    if not top > 0.02:
+    if not top > MIN_WHITE:
         raise CalibrationError(f"{name}: the white capture is black (max {top:.3f})")
-    binary = (gray > 0.3 * top).astype(np.uint8)
+    binary = (gray > LIT_THRESHOLD * top).astype(np.uint8)
     binary = cv2.morphologyEx(binary, cv2.MORPH_OPEN, np.ones((5, 5), np.uint8))
     n, labels, stats, cent = cv2.connectedComponentsWithStats(binary, connectivity=4)
-    big = [k for k in range(1, n) if stats[k, 4] > 0.15 * gray.size / (R * C)]
+    big = [k for k in range(1, n) if stats[k, 4] > MIN_REGION_SHARE * gray.size / (R * C)]
     if len(big) != R * C:
         raise CalibrationError(
             f"{name}: found {len(big)} bright regions, expected {R} x {C} = {R * C} image circles"
@@ -179,7 +202,7 @@ def find_layout(white: np.ndarray, grid: tuple[int, int], *, name: str = "white"
     labels = remap[labels]
     stats = stats[ordered]
     areas = stats[:, 4].astype(float)
-    if areas.min() < 0.5 * np.median(areas):
+    if areas.min() < MIN_AREA_RATIO * np.median(areas):
         raise CalibrationError(f"{name}: the image circles differ too much in size")
     plateau = _plateau(gray, labels, R * C, stats)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -217,8 +240,8 @@ def find_layout(white: np.ndarray, grid: tuple[int, int], *, name: str = "white"
             ok = np.isfinite(along)
             e, t = along[ok], across[ok]
             # A baffle edge is a straight run: many crossings at the same position.
-            straight = np.abs(e - np.median(e)) < 0.7
-            if straight.mean() > 0.2:
+            straight = np.abs(e - np.median(e)) < STRAIGHT_EDGE_PX
+            if straight.mean() > STRAIGHT_SHARE:
                 e, t = e[~straight], t[~straight]
             off = x0 if vertical else y0
             sets.append(
@@ -228,7 +251,7 @@ def find_layout(white: np.ndarray, grid: tuple[int, int], *, name: str = "white"
         centres[k], radii[k] = _circle_from_edge(pts)
     w = int(np.floor((boxes[:, 2] - boxes[:, 0]).min())) - 1
     h = int(np.floor((boxes[:, 3] - boxes[:, 1]).min())) - 1
-    if w < 16 or h < 16:
+    if w < MIN_VIEW_PX or h < MIN_VIEW_PX:
         raise CalibrationError(f"{name}: the lit regions are too small ({w} x {h} px)")
     x0s = np.round((boxes[:, 0] + boxes[:, 2]) / 2 - (w - 1) / 2).astype(np.int64)
     y0s = np.round((boxes[:, 1] + boxes[:, 3]) / 2 - (h - 1) / 2).astype(np.int64)

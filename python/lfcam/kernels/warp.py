@@ -13,11 +13,19 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from lfcam import _lfcam
+import lfcam._lfcam as _lfcam
 from lfcam._validate import as_image, as_int_array
 from lfcam.errors import InputError
 
-__all__ = ["INTERPOLATIONS", "Interp", "RectifyPlan", "rectify", "remap_bilinear"]
+__all__ = [
+    "INTERPOLATIONS",
+    "Interp",
+    "RectifyPlan",
+    "identity_grid",
+    "rectify",
+    "remap",
+    "remap_bilinear",
+]
 
 Interp = Literal["bilinear", "bilinear-exact", "bilinear-q32", "bicubic"]
 
@@ -176,6 +184,24 @@ def remap_bilinear(
     return _lfcam.remap_bilinear(src_arr, map_arr, out_arr)
 
 
+def remap(src: np.ndarray, warp: np.ndarray) -> np.ndarray:
+    """Bilinear sampling of ``src`` (H, W[, C]) at ``warp`` (H', W', 2); NaN outside.
+
+    :func:`remap_bilinear` after converting both to C-contiguous float32: a sample is
+    NaN when its 2x2 footprint leaves ``src`` or touches a NaN.
+    """
+    return remap_bilinear(
+        np.ascontiguousarray(src, np.float32), np.ascontiguousarray(warp, np.float32)
+    )
+
+
+def identity_grid(h: int, w: int) -> NDArray[np.float32]:
+    """``(h, w, 2)`` float32 map of every pixel's own coordinates ``(x, y)``: the map
+    that :func:`remap_bilinear` leaves an image unchanged with."""
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    return np.stack([xx, yy], -1)
+
+
 def rectify(
     raw: ArrayLike,
     gains: ArrayLike,
@@ -263,12 +289,12 @@ def rectify(
     Examples
     --------
     >>> import numpy as np
-    >>> import lfcam.warp
+    >>> import lfcam.kernels.warp
     >>> raw = np.arange(12, dtype=np.uint8).reshape(3, 4) * 10
     >>> gains = np.full((3, 4), 2.0, dtype=np.float32)
     >>> crops = [[2, 0, 2, 3]]  # the right half
     >>> warps = np.array([[[[0.5, 0.0], [1.0, 0.5], [1.5, 0.0]]]], dtype=np.float32)
-    >>> out = lfcam.warp.rectify(raw, gains, crops, warps)
+    >>> out = lfcam.kernels.warp.rectify(raw, gains, crops, warps)
     >>> out.shape
     (1, 1, 3)
     >>> np.round(out * 255 / 2, 3)
@@ -341,11 +367,11 @@ class RectifyPlan:
     Examples
     --------
     >>> import numpy as np
-    >>> import lfcam.warp
+    >>> import lfcam.kernels.warp
     >>> raw = np.arange(12, dtype=np.uint8).reshape(3, 4) * 10
     >>> gains = np.full((3, 4), 2.0, dtype=np.float32)
     >>> warps = np.array([[[[0.5, 0.0], [1.0, 0.5], [1.5, 0.0]]]], dtype=np.float32)
-    >>> plan = lfcam.warp.RectifyPlan(gains, [[2, 0, 2, 3]], warps)
+    >>> plan = lfcam.kernels.warp.RectifyPlan(gains, [[2, 0, 2, 3]], warps)
     >>> plan
     RectifyPlan(n_views=1, shape=(1, 3), raw_shape=(3, 4), kept=2)
     >>> np.round(plan.rectify(raw) * 255 / 2, 3)

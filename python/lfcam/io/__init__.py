@@ -1,0 +1,43 @@
+"""Files in and out: images and raw captures, PFM and ``.flo`` arrays, PLY, atomic
+writing, display encodings and checksums. The only subpackage that opens files (the
+calibration file's HDF5 layout lives with the :class:`~lfcam.Calibration` type)."""
+
+from .atomic import atomic_folder, atomic_output, write_image_atomic, write_text_atomic
+from .checksum import file_hash
+from .display import colour_depth, encode_u8, encode_u16, rgb_u8
+from .formats import read_flo, read_pfm, write_pfm
+from .images import (
+    BAYER_PATTERNS,
+    IMAGE_EXTENSIONS,
+    demosaic,
+    is_image_file,
+    read_image,
+    read_raw,
+    to_float,
+    write_image,
+)
+from .ply import write_ply
+
+__all__ = [
+    "BAYER_PATTERNS",
+    "IMAGE_EXTENSIONS",
+    "atomic_folder",
+    "atomic_output",
+    "colour_depth",
+    "demosaic",
+    "encode_u8",
+    "encode_u16",
+    "file_hash",
+    "is_image_file",
+    "read_flo",
+    "read_image",
+    "read_pfm",
+    "read_raw",
+    "rgb_u8",
+    "to_float",
+    "write_image",
+    "write_image_atomic",
+    "write_pfm",
+    "write_ply",
+    "write_text_atomic",
+]
