@@ -24,8 +24,12 @@ def test_hierarchy() -> None:
     [
         ("InvalidArgument", lfcam.InputError, "arg: test InvalidArgument"),
         ("InvalidItem", lfcam.InputError, "arg[7]: test InvalidItem"),
-        ("Calibration", lfcam.CalibrationError, "test Calibration"),
         ("Numerical", lfcam.NumericalError, "test Numerical"),
+        (
+            "Internal",
+            lfcam.LfcamError,
+            "internal error in _raise_core_error: test Internal; please report this",
+        ),
     ],
 )
 def test_each_core_variant_maps_to_its_class(variant: str, cls: type, message: str) -> None:
@@ -33,6 +37,14 @@ def test_each_core_variant_maps_to_its_class(variant: str, cls: type, message: s
         _lfcam._raise_core_error(variant)
     assert type(info.value) is cls
     assert str(info.value) == message
+
+
+def test_internal_error_does_not_blame_the_input() -> None:
+    # A broken invariant of the core is lfcam's bug: the base class, which neither
+    # `except InputError` nor `except ValueError` catches.
+    with pytest.raises(lfcam.LfcamError) as info:
+        _lfcam._raise_core_error("Internal")
+    assert not isinstance(info.value, (lfcam.InputError, ValueError))
 
 
 def test_unknown_variant_is_an_input_error() -> None:

@@ -439,7 +439,7 @@ pub fn rasterize(mesh: &ProjectedMesh<'_>, target: Target<'_>) -> Result<()> {
             let (p0, p1) = (first * width, first * width + dep.len());
             for (b_img, b_dep) in &buffers {
                 let (Some(bi), Some(bd)) = (b_img.get(p0 * ch..p1 * ch), b_dep.get(p0..p1)) else {
-                    return Err(Error::invalid_argument("image", "internal: buffer size"));
+                    return Err(Error::internal("rasterize", "buffer size"));
                 };
                 for (((d, px), bz), bpx) in dep
                     .iter_mut()

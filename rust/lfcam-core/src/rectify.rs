@@ -457,9 +457,9 @@ fn rectify_with<T: RawSample>(
         (3, 3) => job.run::<3, 3>(interp, out),
         (4, 1) => job.run::<4, 1>(interp, out),
         (4, 4) => job.run::<4, 4>(interp, out),
-        (c, g) => Err(Error::invalid_argument(
-            "gains",
-            format!("internal: unexpected channel counts raw {c}, gains {g}"),
+        (c, g) => Err(Error::internal(
+            "rectify",
+            format!("unexpected channel counts raw {c}, gains {g}"),
         )),
     }
 }
@@ -586,7 +586,7 @@ impl<T: RawSample> Job<'_, T> {
                 let (j, v) = (g / h, g % h);
                 let n = (h - v).min(rest.len() / row_len);
                 let (run, tail) = std::mem::take(&mut rest).split_at_mut(n * row_len);
-                let view = *self.views.get(j).ok_or_else(|| internal(g))?;
+                let view = *self.views.get(j).ok_or_else(|| internal("rectify", g))?;
                 self.segment::<C, G, S>(view, v, run, &mut band)?;
                 rest = tail;
                 g += n;
@@ -639,7 +639,10 @@ impl<T: RawSample> Job<'_, T> {
         out: &mut [f32],
         band: &mut Vec<f32>,
     ) -> Result<()> {
-        let crop = *self.crops.get(view).ok_or_else(|| internal(v0))?;
+        let crop = *self
+            .crops
+            .get(view)
+            .ok_or_else(|| internal("rectify", v0))?;
         let n_rows = out.len() / (self.maps.width() * C);
         let direct = Direct::<T, C, G> {
             raw: self.raw.as_slice(),
@@ -718,7 +721,11 @@ impl<T: RawSample> Job<'_, T> {
             if !(v - v0).is_multiple_of(EXTENT_ROW_STEP) && v + 1 != v0 + n_rows {
                 // Not sampled: only whether a position is kept.
                 if !any_kept {
-                    any_kept = match self.maps.mask_row(view, v).ok_or_else(|| internal(v))? {
+                    any_kept = match self
+                        .maps
+                        .mask_row(view, v)
+                        .ok_or_else(|| internal("rectify", v))?
+                    {
                         None => true,
                         Some(mask) => mask.iter().any(|&k| k != 0),
                     };
@@ -728,12 +735,16 @@ impl<T: RawSample> Job<'_, T> {
             let points = self
                 .maps
                 .warp_row(view, v)
-                .ok_or_else(|| internal(v))?
+                .ok_or_else(|| internal("rectify", v))?
                 .as_chunks::<2>()
                 .0;
             // The last position of a row is always seen: extremes are often there.
             let last = points.len().saturating_sub(1);
-            match self.maps.mask_row(view, v).ok_or_else(|| internal(v))? {
+            match self
+                .maps
+                .mask_row(view, v)
+                .ok_or_else(|| internal("rectify", v))?
+            {
                 None => {
                     any_kept = true;
                     for (i, &p) in points.iter().enumerate() {
@@ -777,8 +788,14 @@ impl<T: RawSample> Job<'_, T> {
         v: usize,
     ) -> Result<(&[[f32; 2]], impl Iterator<Item = &[u8]>)> {
         const KEEP_ALL: [u8; GROUP] = [1; GROUP];
-        let warp_row = self.maps.warp_row(view, v).ok_or_else(|| internal(v))?;
-        let mask_row = self.maps.mask_row(view, v).ok_or_else(|| internal(v))?;
+        let warp_row = self
+            .maps
+            .warp_row(view, v)
+            .ok_or_else(|| internal("rectify", v))?;
+        let mask_row = self
+            .maps
+            .mask_row(view, v)
+            .ok_or_else(|| internal("rectify", v))?;
         let keep = mask_row
             .into_iter()
             .flat_map(|m| m.chunks(GROUP))
@@ -805,7 +822,7 @@ impl<T: RawSample> Job<'_, T> {
         let mut wild = false;
         let x = crop.x0 + col0;
         for y in crop.y0 + row0..crop.y0 + row0 + bh {
-            let bad = || internal(y);
+            let bad = || internal("rectify", y);
             let raw = self.raw.row_span(y, x, bw).ok_or_else(bad)?;
             let gains = self.gains.row_span(y, x, bw).ok_or_else(bad)?;
             // Written as a select so that the loops vectorise.
@@ -909,7 +926,10 @@ impl<T: RawSample> Job<'_, T> {
     ) -> Result<()> {
         let data = band.data;
         // `fill_band` pads the band with 8 NaN values.
-        let nan_at = data.len().checked_sub(8).ok_or_else(|| internal(v0))?;
+        let nan_at = data
+            .len()
+            .checked_sub(8)
+            .ok_or_else(|| internal("rectify", v0))?;
         let as_i32 = |v: usize| i32::try_from(v).ok();
         let (Some(nan_at), Some(stride), Some(row0), Some(col0), Some(rows), Some(cols)) = (
             as_i32(nan_at),
@@ -1001,7 +1021,7 @@ impl<T: RawSample> Job<'_, T> {
                         pair8::<C>(data, top, right),
                         pair8::<C>(data, top + down as usize, right),
                     ) else {
-                        return Err(internal(v0 + k));
+                        return Err(internal("rectify", v0 + k));
                     };
                     let v = lerp_lanes(lerp_lanes(p00, p01, tx), lerp_lanes(p10, p11, tx), ty);
                     *px = if CHECK_NAN && any_nan(&v, C) {
@@ -1057,9 +1077,10 @@ fn pair8<const C: usize>(data: &[f32], start: usize, right: bool) -> Option<(Lan
     Some((a, if right { b } else { a }))
 }
 
-/// The error of a broken internal invariant (never the caller's fault).
-fn internal(at: usize) -> Error {
-    Error::invalid_argument("views", format!("internal: row {at}"))
+/// The error of a broken internal invariant of `function` at row `at` (never the
+/// caller's fault).
+fn internal(function: &'static str, at: usize) -> Error {
+    Error::internal(function, format!("row {at}"))
 }
 
 #[cfg(test)]

@@ -1639,7 +1639,7 @@ fn splat_all(
         };
         let out = if pass == params.iterations {
             last.take()
-                .ok_or_else(|| Error::Numerical("shift_and_add: no last pass".into()))?
+                .ok_or_else(|| Error::internal("shift_and_add", "no last pass"))?
         } else {
             PassOut::Estimate(write)
         };

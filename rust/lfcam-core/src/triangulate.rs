@@ -733,8 +733,7 @@ impl Setup<'_> {
     /// whether any lane has a usable view and whether every usable weight is 1.
     #[inline(always)]
     fn gather(&self, sc: &mut Scratch, y: usize, x0: usize, len: usize) -> Result<(bool, bool)> {
-        let internal =
-            || Error::invalid_argument("flows", format!("internal: row {y} out of range"));
+        let internal = || Error::internal("triangulate", format!("row {y} out of range"));
         let rows =
             sc.s.iter_mut()
                 .zip(sc.a.iter_mut())

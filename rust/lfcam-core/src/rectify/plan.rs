@@ -372,9 +372,9 @@ impl RectifyPlan {
             (3, 3) => self.run::<T, 3, 3>(&raw, views, out, simd),
             (4, 1) => self.run::<T, 4, 1>(&raw, views, out, simd),
             (4, 4) => self.run::<T, 4, 4>(&raw, views, out, simd),
-            (c, g) => Err(Error::invalid_argument(
-                "raw",
-                format!("internal: unexpected channel counts raw {c}, gains {g}"),
+            (c, g) => Err(Error::internal(
+                "RectifyPlan.rectify",
+                format!("unexpected channel counts raw {c}, gains {g}"),
             )),
         }
     }
@@ -406,7 +406,7 @@ impl RectifyPlan {
                     let view = views
                         .get(j)
                         .and_then(|&i| self.views.get(i))
-                        .ok_or_else(|| internal(g))?;
+                        .ok_or_else(|| internal("RectifyPlan.rectify", g))?;
                     let segment = Segment::<'_, '_, T, C, G> {
                         plan: self,
                         view,
@@ -442,7 +442,10 @@ impl RectifyPlan {
     ) -> Result<()> {
         let row_len = self.width * C;
         let n = out.len() / row_len;
-        let rows = view.rows.get(v0..v0 + n).ok_or_else(|| internal(v0))?;
+        let rows = view
+            .rows
+            .get(v0..v0 + n)
+            .ok_or_else(|| internal("RectifyPlan.rectify", v0))?;
         // The band: the rows' footprint box.
         let mut cols = (usize::MAX, 0);
         let mut rws = (usize::MAX, 0);
@@ -457,12 +460,13 @@ impl RectifyPlan {
         let (c0, bw) = (cols.0, cols.1 - cols.0 + 1);
         let (r0, bh) = (rws.0, rws.1 - rws.0 + 1);
         let band = &mut scratch.band;
-        fill_band::<T, C, G>(view, raw, (c0, bw), (r0, bh), band).ok_or_else(|| internal(v0))?;
+        fill_band::<T, C, G>(view, raw, (c0, bw), (r0, bh), band)
+            .ok_or_else(|| internal("RectifyPlan.rectify", v0))?;
         // Band pixel `(r, c)` of the crop is at `(r - r0) * stride + c * C`: a tap at
         // crop index `at` starts at `(at - base) * C`.
         let (stride, base) = (view.crop.w * C, r0 * view.crop.w);
         for (k, (row, out_row)) in rows.iter().zip(out.chunks_exact_mut(row_len)).enumerate() {
-            let bad = || internal(v0 + k);
+            let bad = || internal("RectifyPlan.rectify", v0 + k);
             let runs = view.runs.get(row.runs.0..row.runs.1).ok_or_else(bad)?;
             let mut taps = view.taps.get(row.taps.0..row.taps.1).ok_or_else(bad)?;
             let mut done = 0;
@@ -707,9 +711,9 @@ fn build_view(
     // Per crop row, the columns footprints read, inclusive; lo > hi for none.
     let mut used = vec![(usize::MAX, 0usize); h];
     let mut wild = false;
-    let status = gain_status(gains, crop).ok_or_else(|| internal(0))?;
+    let status = gain_status(gains, crop).ok_or_else(|| internal("RectifyPlan", 0))?;
     for v in 0..maps.height() {
-        let bad = || internal(v);
+        let bad = || internal("RectifyPlan", v);
         let (points, _) = maps.warp_row(i, v).ok_or_else(bad)?.as_chunks::<2>();
         let mask = maps.mask_row(i, v).ok_or_else(bad)?;
         let (runs0, taps0) = (runs.len(), taps.len());
@@ -771,7 +775,7 @@ fn build_view(
         }
         let span = gains
             .row_span(crop.y0 + y, crop.x0 + lo, hi + 1 - lo)
-            .ok_or_else(|| internal(y))?;
+            .ok_or_else(|| internal("RectifyPlan", y))?;
         *gr = GainRow {
             lo,
             hi: hi + 1,
