@@ -60,8 +60,6 @@
 //! time; it gives the same bits (tested) in about a third (AVX-512) or 60% (AVX2) of
 //! the instructions. The general path remains for more views and other CPUs.
 
-use rayon::prelude::*;
-
 use crate::error::{Error, Result};
 use crate::image::ImageView;
 use crate::{parallel, simd};
@@ -1192,18 +1190,12 @@ fn triangulate_with(
         .map(|(i, out)| (i * rows, out))
         .collect();
     let m = setup.views.len();
-    let body =
-        |sc: &mut Scratch, (first, out): (usize, Outputs<'_>)| rows_task(&setup, sc, first, out);
-    if parallel::run_serially(row_bytes.saturating_mul(h), threads) {
-        let mut sc = Scratch::new(m);
-        tasks.into_iter().try_for_each(|task| body(&mut sc, task))
-    } else {
-        parallel::install(|| {
-            tasks
-                .into_par_iter()
-                .try_for_each_init(|| Scratch::new(m), body)
-        })?
-    }
+    parallel::for_each_task_init(
+        tasks,
+        row_bytes.saturating_mul(h),
+        || Scratch::new(m),
+        |sc, _, (first, out)| rows_task(&setup, sc, first, out),
+    )
 }
 
 #[cfg(test)]

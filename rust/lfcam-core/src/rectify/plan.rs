@@ -24,8 +24,6 @@
 //!
 //! [`rectify`]: super::rectify
 
-use rayon::prelude::*;
-
 use super::{Crop, Interp, MIN_TASK_ROWS, RawSample, TAME, ViewMaps, check_crop, internal};
 use crate::error::{Error, Result};
 use crate::image::ImageView;
@@ -204,13 +202,14 @@ impl RectifyPlan {
                 Ok(crop)
             })
             .collect::<Result<Vec<_>>>()?;
-        let views = parallel::install(|| {
-            crops
-                .par_iter()
-                .enumerate()
-                .map(|(i, &crop)| build_view(&gains, crop, &maps, i))
-                .collect::<Result<Vec<_>>>()
-        })??;
+        // One task per view (its warps' bytes measure the work).
+        let work = crops.len() * maps.height() * maps.width() * 8;
+        let views = parallel::map_tasks(crops.len(), work, |i| {
+            let crop = *crops
+                .get(i)
+                .ok_or_else(|| Error::internal("RectifyPlan", format!("view {i}")))?;
+            build_view(&gains, crop, &maps, i)
+        })?;
         Ok(Self {
             raw_height: gains.height(),
             raw_width: gains.width(),

@@ -1,10 +1,9 @@
 //! Warp-map inversion: for each raw pixel of a view's crop, the rectified position its
 //! warp map sends there (Newton's method on the bilinear cell that covers it).
 
-use rayon::prelude::*;
-
 use super::{check_len, mul, positive};
 use crate::error::{Error, Result};
+use crate::parallel;
 
 /// The rectified position `(u + a, v + b)` of the raw point `(px, py)` inside the cell
 /// whose corners map to `p00 = w(u, v)`, `p10 = w(u + 1, v)`, `p01 = w(u, v + 1)`,
@@ -200,16 +199,15 @@ pub fn invert_maps(
         }
         rects.push([x0 as usize, y0 as usize, cw as usize, ch as usize]);
     }
-    let per_view: Vec<Vec<f32>> = (0..n)
-        .into_par_iter()
-        .map(|i| {
-            let [_, _, cw, ch] = rects[i];
-            let mut buf = vec![0f32; ch * cw * 2];
-            let m = masks.map(|m| &m[i * h * w..(i + 1) * h * w]);
-            invert_map(&warps[i * per..(i + 1) * per], m, h, w, ch, cw, &mut buf)?;
-            Ok(buf)
-        })
-        .collect::<Result<_>>()?;
+    // One task per view (the inverted crops' bytes measure the work).
+    let work = rects.iter().map(|&[_, _, cw, ch]| cw * ch * 8).sum();
+    let per_view = parallel::map_tasks(n, work, |i| {
+        let [_, _, cw, ch] = rects[i];
+        let mut buf = vec![0f32; ch * cw * 2];
+        let m = masks.map(|m| &m[i * h * w..(i + 1) * h * w]);
+        invert_map(&warps[i * per..(i + 1) * per], m, h, w, ch, cw, &mut buf)?;
+        Ok(buf)
+    })?;
     inv.fill(f32::NAN);
     view.fill(-1);
     for (i, (buf, rect)) in per_view.iter().zip(&rects).enumerate() {

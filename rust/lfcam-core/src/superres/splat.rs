@@ -5,8 +5,6 @@
 
 mod bins;
 
-use rayon::prelude::*;
-
 use self::bins::{Bins, bin_samples};
 use super::{MAX_CHANNELS, MAX_FACTOR, MAX_RADIUS, check_len, mul, positive};
 use crate::error::{Error, Result};
@@ -618,36 +616,21 @@ fn splat3<const L: usize>(
 }
 
 /// One accumulation pass over all bands, into `out`.
-fn splat_pass<const C: usize, const L: usize>(
-    job: &SplatJob<'_>,
-    out: PassOut<'_>,
-    threads: usize,
-) -> Result<()> {
-    let fine_w = job.fine_w;
-    let go = |acc: &mut Vec<[f32; L]>, (band, out): (usize, BandOut<'_>)| {
-        simd::run_avx2_or_portable(
-            true,
-            SplatBand::<C, L> {
-                job,
-                band,
-                acc,
-                out,
-            },
-        );
-    };
-    let bands = out.bands(fine_w, C, job.bins.band_rows);
-    if parallel::run_serially(job.fine_h * fine_w * (C + 1) * 4, threads) {
-        let mut acc = Vec::new();
-        bands.into_iter().enumerate().for_each(|b| go(&mut acc, b));
+fn splat_pass<const C: usize, const L: usize>(job: &SplatJob<'_>, out: PassOut<'_>) -> Result<()> {
+    let bands = out.bands(job.fine_w, C, job.bins.band_rows);
+    // One task per band, each with its accumulator (the sums and weights written
+    // measure the work).
+    let work = job.fine_h * job.fine_w * (C + 1) * 4;
+    parallel::for_each_task_init(bands, work, Vec::new, |acc, band, out| {
+        let task = SplatBand::<C, L> {
+            job,
+            band,
+            acc,
+            out,
+        };
+        simd::run_avx2_or_portable(true, task);
         Ok(())
-    } else {
-        parallel::install(|| {
-            bands
-                .into_par_iter()
-                .enumerate()
-                .for_each_init(Vec::new, go);
-        })
-    }
+    })
 }
 
 /// Floats per pixel of an estimate image: `C <= 4` values, then zeros.
@@ -924,10 +907,10 @@ fn splat_all(
             PassOut::Estimate(write)
         };
         match channels {
-            1 => splat_pass::<1, 4>(&job, out, threads)?,
-            2 => splat_pass::<2, 4>(&job, out, threads)?,
-            3 => splat_pass::<3, 4>(&job, out, threads)?,
-            _ => splat_pass::<4, 8>(&job, out, threads)?,
+            1 => splat_pass::<1, 4>(&job, out)?,
+            2 => splat_pass::<2, 4>(&job, out)?,
+            3 => splat_pass::<3, 4>(&job, out)?,
+            _ => splat_pass::<4, 8>(&job, out)?,
         }
     }
     Ok(())

@@ -2,8 +2,6 @@
 //! samples as runs of consecutive sample indices, so that bands are accumulated in
 //! parallel without sharing output and read their samples in order.
 
-use rayon::prelude::*;
-
 use super::{fine_pos, nearest};
 use crate::error::{Error, Result};
 use crate::parallel;
@@ -106,12 +104,8 @@ pub(super) fn bin_samples(
         }
         ChunkRuns { starts, runs }
     };
-    let n_chunks = m.div_ceil(BIN_CHUNK);
-    let chunks = if n_chunks <= 1 {
-        (0..n_chunks).map(one).collect()
-    } else {
-        parallel::install(|| (0..n_chunks).into_par_iter().map(one).collect())?
-    };
+    // One task per chunk (the samples' positions measure the work).
+    let chunks = parallel::map_tasks(m.div_ceil(BIN_CHUNK), 8 * m, |c| Ok(one(c)))?;
     Ok(Bins { band_rows, chunks })
 }
 
