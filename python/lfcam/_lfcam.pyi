@@ -23,6 +23,7 @@ __all__ = [
     "set_num_threads",
     "shift_and_add",
     "shift_and_add_mean",
+    "simd_info",
     "triangulate",
     "weighted_median_fill",
 ]
@@ -194,6 +195,9 @@ def set_num_threads(n: int) -> None:
 
 def get_num_threads() -> int:
     """The number of threads lfcam's kernels run on."""
+
+def simd_info() -> dict[str, str]:
+    """Which SIMD builds run: setting (LFCAM_SIMD), cpu, level, then one per kernel family."""
 
 def _raise_core_error(kind: str) -> NoReturn:
     """Test hook: raise the exception a core error variant maps to."""

@@ -42,6 +42,7 @@ use crate::remap::{
     Bicubic, Bilinear, BilinearQ32, Lanes, MAX_CHANNELS, Packed, Sampler, Taps, any_nan, first,
     four, last, lerp_lanes,
 };
+use crate::simd::{Dispatch, Level};
 
 pub use plan::RectifyPlan;
 
@@ -413,11 +414,19 @@ pub fn rectify<T: RawSample>(
     interp: Interp,
     out: &mut [f32],
 ) -> Result<()> {
-    rectify_with(raw, gains, crops, maps, views, interp, out, true)
+    rectify_with(
+        raw,
+        gains,
+        crops,
+        maps,
+        views,
+        interp,
+        out,
+        &Dispatch::auto(),
+    )
 }
 
-/// [`rectify`], with `simd = false` forcing the baseline build of the loops (see
-/// [`crate::simd`]).
+/// [`rectify`] with the builds `simd` allows (see [`crate::simd`]).
 #[allow(clippy::too_many_arguments)]
 fn rectify_with<T: RawSample>(
     raw: ImageView<'_, T>,
@@ -427,7 +436,7 @@ fn rectify_with<T: RawSample>(
     views: &[usize],
     interp: Interp,
     out: &mut [f32],
-    simd: bool,
+    simd: &Dispatch,
 ) -> Result<()> {
     let checked = check(&raw, &gains, crops, &maps, views)?;
     let expected: usize = checked.shape.iter().product();
@@ -560,8 +569,8 @@ struct Job<'a, T> {
     crops: &'a [Crop],
     maps: ViewMaps<'a>,
     views: &'a [usize],
-    /// Whether to run the AVX2 build of the loops if the CPU has AVX2.
-    simd: bool,
+    /// Which builds of the loops may run.
+    simd: &'a Dispatch,
 }
 
 impl<T: RawSample> Job<'_, T> {
@@ -595,7 +604,7 @@ impl<T: RawSample> Job<'_, T> {
         })
     }
 
-    /// [`Self::segment_impl`], compiled for AVX2 if the CPU has it (see
+    /// [`Self::segment_impl`], compiled for AVX2 if [`Self::simd`] selects it (see
     /// [`crate::simd`]), else for the baseline.
     fn segment<const C: usize, const G: usize, S: Sampler>(
         &self,
@@ -605,8 +614,9 @@ impl<T: RawSample> Job<'_, T> {
         band: &mut Vec<f32>,
     ) -> Result<()> {
         #[cfg(target_arch = "x86_64")]
-        if self.simd && crate::simd::has_avx2() {
-            // SAFETY: `segment_avx2` needs only AVX2, which `has_avx2` found on this CPU.
+        if self.simd.select(Level::Avx2) {
+            // SAFETY: `segment_avx2` needs only AVX2, which this CPU has: a `Dispatch`
+            // selects only levels `simd::level` allows.
             #[allow(unsafe_code)]
             let result = unsafe { self.segment_avx2::<C, G, S>(view, v0, out, band) };
             return result;
@@ -1190,6 +1200,9 @@ mod tests {
 
     #[test]
     fn avx2_and_baseline_builds_agree() {
+        if !crate::simd::runs_or_skip(Level::Avx2, "rectify avx2_and_baseline_builds_agree") {
+            return;
+        }
         // 2x2 views of 70x50 from a 150x110 RGB u16 frame, smooth warps with NaN
         // holes, a mask, a few zero gains (per channel and per pixel).
         let (fw, fh, vw, vh, rw, rh) = (150usize, 110usize, 70usize, 50usize, 90usize, 60usize);
@@ -1231,8 +1244,9 @@ mod tests {
             for masks in [None, Some(&masks[..])] {
                 let maps = ViewMaps::new(&warps, masks, 4, rh, rw).unwrap();
                 for interp in Interp::ALL {
-                    let results = [true, false].map(|simd| {
+                    let results = [Level::Avx2, Level::Portable].map(|cap| {
                         let mut out = vec![0f32; 4 * rh * rw * 3];
+                        let simd = Dispatch::at_most(cap);
                         rectify_with(
                             raw_v,
                             gains_v,
@@ -1241,9 +1255,10 @@ mod tests {
                             &[0, 1, 2, 3],
                             interp,
                             &mut out,
-                            simd,
+                            &simd,
                         )
                         .unwrap();
+                        assert_eq!(simd.ran(), cap, "{interp:?}");
                         out
                     });
                     let [a, b] = &results;

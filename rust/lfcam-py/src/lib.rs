@@ -9,6 +9,7 @@ mod arrays;
 mod crop;
 mod errors;
 mod fill;
+mod info;
 mod raster;
 mod rectify;
 mod remap;
@@ -30,6 +31,8 @@ mod lfcam_ext {
     use crate::errors::{_panic_for_test, _raise_core_error};
     #[pymodule_export]
     use crate::fill::weighted_median_fill;
+    #[pymodule_export]
+    use crate::info::simd_info;
     #[pymodule_export]
     use crate::raster::rasterize;
     #[pymodule_export]

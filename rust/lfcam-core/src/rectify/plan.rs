@@ -29,7 +29,7 @@ use crate::error::{Error, Result};
 use crate::image::ImageView;
 use crate::parallel;
 use crate::remap::{Lanes, Linear, MAX_CHANNELS, any_nan, lerp_lanes};
-use crate::simd::{Avx2Kernel, BandTaps, bilinear_band};
+use crate::simd::{Avx2Kernel, BandTaps, Dispatch, bilinear_band};
 
 /// The rectified pixels with a value of a view, in order, as parallel vectors: the
 /// top-left pixel of each one's footprint, as its index `row * w + col` in the `w x h`
@@ -341,16 +341,16 @@ impl RectifyPlan {
         views: &[usize],
         out: &mut [f32],
     ) -> Result<()> {
-        self.rectify_with(raw, views, out, true)
+        self.rectify_with(raw, views, out, &Dispatch::auto())
     }
 
-    /// [`Self::rectify`], with `simd = false` forcing the baseline build of the loops.
+    /// [`Self::rectify`] with the builds `simd` allows (see [`crate::simd`]).
     fn rectify_with<T: RawSample>(
         &self,
         raw: ImageView<'_, T>,
         views: &[usize],
         out: &mut [f32],
-        simd: bool,
+        simd: &Dispatch,
     ) -> Result<()> {
         let shape = self.output_shape(&raw, views)?;
         let expected: usize = shape.iter().product();
@@ -385,7 +385,7 @@ impl RectifyPlan {
         raw: &ImageView<'_, T>,
         views: &[usize],
         out: &mut [f32],
-        simd: bool,
+        simd: &Dispatch,
     ) -> Result<()> {
         let h = self.height;
         let row_len = self.width * C;
@@ -807,12 +807,17 @@ fn run(start: usize, end: usize) -> Option<(u32, u32)> {
 mod tests {
     use super::super::rectify;
     use super::*;
+    use crate::simd::{Level, runs_or_skip};
 
     #[test]
     fn plan_equals_rectify_bit_for_bit() {
         // 2x2 views of 70x50 from a 150x110 frame, smooth warps with NaN holes, a mask,
         // zero gains, every channel layout, u8, u16 and f32 (with a NaN and an
-        // infinity), serial and parallel, AVX2 and baseline.
+        // infinity), serial and parallel, AVX2 (where it runs) and baseline.
+        runs_or_skip(
+            Level::Avx2,
+            "plan_equals_rectify_bit_for_bit (its AVX2 half)",
+        );
         let (fw, fh, vw, vh, rw, rh) = (150usize, 110usize, 70usize, 50usize, 90usize, 60usize);
         let crops: Vec<[i64; 4]> = (0..4)
             .map(|i| [5 + 72 * (i % 2), 4 + 52 * (i / 2), vw as i64, vh as i64])
@@ -881,10 +886,13 @@ mod tests {
                             )
                             .unwrap();
                             assert!(want.iter().filter(|v| v.is_finite()).count() > len / 2);
-                            for simd in [true, false] {
+                            for cap in [Level::Avx2, Level::Portable] {
                                 let mut got = vec![7f32; len];
-                                plan.rectify_with(raw_v, &views, &mut got, simd).unwrap();
+                                let simd = Dispatch::at_most(cap);
+                                plan.rectify_with(raw_v, &views, &mut got, &simd).unwrap();
                                 check(&want, &got);
+                                // The SIMD build ran where it can (see `simd::runs_or_skip`).
+                                assert_eq!(simd.ran(), simd.allowed());
                             }
                         }};
                     }

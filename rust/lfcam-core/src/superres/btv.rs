@@ -3,7 +3,8 @@
 
 use super::{MAX_CHANNELS, check_len, mul, positive};
 use crate::error::{Error, Result};
-use crate::{parallel, simd};
+use crate::parallel;
+use crate::simd::{self, Dispatch};
 
 /// The `k`-th smallest (from 0) of the positive values of `v` (NaN and non-positive
 /// ones left out), `k` below their count: a radix select on the bit patterns, which
@@ -255,6 +256,8 @@ struct BtvStep<'a> {
     step: f32,
     lambda: f32,
     eps: f32,
+    /// Which builds of the loops may run.
+    simd: &'a Dispatch,
 }
 
 /// One task's rolling rows.
@@ -479,7 +482,7 @@ fn btv_rows(job: &BtvStep<'_>, first: usize, out: &mut [f32]) -> Result<()> {
 }
 
 simd::avx2_or_portable!(
-    true,
+    job.simd,
     /// [`btv_rows`], compiled for AVX2 and for the baseline.
     fn btv_task(job: &BtvStep<'_>, first: usize, out: &mut [f32]) -> Result<()> {
         btv_rows(job, first, out)
@@ -524,6 +527,21 @@ pub fn btv_deblur(
     c: usize,
     params: &BtvParams,
     x: &mut [f32],
+) -> Result<()> {
+    btv_deblur_with(z, a, h, w, c, params, x, &Dispatch::auto())
+}
+
+/// [`btv_deblur`] with the builds `simd` allows (see [`crate::simd`]).
+#[allow(clippy::too_many_arguments)]
+fn btv_deblur_with(
+    z: &[f32],
+    a: &[f32],
+    h: usize,
+    w: usize,
+    c: usize,
+    params: &BtvParams,
+    x: &mut [f32],
+    simd: &Dispatch,
 ) -> Result<()> {
     if h == 0 || w == 0 || !(1..=MAX_CHANNELS).contains(&c) {
         return Err(Error::invalid_argument(
@@ -588,6 +606,7 @@ pub fn btv_deblur(
             step: p.step,
             lambda: p.lambda,
             eps: p.eps,
+            simd,
         };
         parallel::for_each_row_chunk_min(dst, row_len, min_rows, |first, rows| {
             btv_task(&job, first, rows)
@@ -603,6 +622,7 @@ pub fn btv_deblur(
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
+    use crate::simd::Level;
 
     /// BTV straight from the formula, one pixel at a time (blurs with clamped borders,
     /// all `(2P + 1)^2 - 1` shifts).
@@ -684,6 +704,7 @@ mod tests {
 
     #[test]
     fn btv_matches_the_formula() {
+        simd::runs_or_skip(Level::Avx2, "btv_matches_the_formula (its AVX2 comparison)");
         let mut seed = 12345u64;
         let mut rnd = move || {
             seed = seed
@@ -718,6 +739,21 @@ mod tests {
                 .map(|(a, b)| (a - b).abs())
                 .fold(0f32, f32::max);
             assert!(err < 1e-5, "{h}x{w}x{c} window {window}: {err}");
+            // Both builds (the AVX2 one where it runs), bit for bit.
+            let [simd_x, portable_x] = [Level::Avx2, Level::Portable].map(|cap| {
+                let mut x = z.clone();
+                let simd = Dispatch::at_most(cap);
+                btv_deblur_with(&z, &a, h, w, c, &p, &mut x, &simd).unwrap();
+                assert_eq!(simd.ran(), simd.allowed());
+                x
+            });
+            assert!(
+                simd_x
+                    .iter()
+                    .zip(&portable_x)
+                    .all(|(a, b)| a.to_bits() == b.to_bits()),
+                "{h}x{w}x{c} window {window}"
+            );
         }
     }
 

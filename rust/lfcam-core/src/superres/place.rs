@@ -3,7 +3,8 @@
 
 use super::{check_len, mul};
 use crate::error::{Error, Result};
-use crate::{parallel, simd};
+use crate::parallel;
+use crate::simd::{self, Dispatch};
 
 /// Bilinear sample of a `(h, w)` map at `(x, y)`, skipping NaN corners (the others are
 /// renormalised); NaN if the finite corners carry less than half the weight or the
@@ -82,6 +83,23 @@ pub fn place_samples(
     params: &PlaceParams,
     out: &mut [f32],
 ) -> Result<()> {
+    let simd = Dispatch::auto();
+    place_samples_with(inv, view, offsets, parallax, h, w, params, out, &simd)
+}
+
+/// [`place_samples`] with the builds `simd` allows (see [`crate::simd`]).
+#[allow(clippy::too_many_arguments)]
+fn place_samples_with(
+    inv: &[f32],
+    view: &[i32],
+    offsets: &[[f64; 2]],
+    parallax: &[f32],
+    h: usize,
+    w: usize,
+    params: &PlaceParams,
+    out: &mut [f32],
+    simd: &Dispatch,
+) -> Result<()> {
     let m = view.len();
     check_len(
         "inv",
@@ -118,6 +136,7 @@ pub fn place_samples(
         w,
         iterations: params.iterations,
         tolerance: params.tolerance,
+        simd,
     };
     parallel::for_each_row_chunk(out, 2, |first, rows| {
         place_task(&job, first, rows);
@@ -135,6 +154,7 @@ struct PlaceJob<'a> {
     w: usize,
     iterations: usize,
     tolerance: f32,
+    simd: &'a Dispatch,
 }
 
 /// Samples placed side by side: their fixed-point iterations are independent, so
@@ -143,7 +163,7 @@ struct PlaceJob<'a> {
 const PLACE_LANES: usize = 8;
 
 simd::avx2_or_portable!(
-    true,
+    job.simd,
     /// [`place_rows`], compiled for AVX2 and for the baseline.
     fn place_task(job: &PlaceJob<'_>, first: usize, out: &mut [f32]) -> () {
         place_rows(job, first, out)
@@ -238,6 +258,7 @@ fn place_rows(job: &PlaceJob<'_>, first: usize, out: &mut [f32]) {
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
+    use crate::simd::Level;
 
     /// Placement one sample at a time (the fixed-point iteration as documented).
     fn place_naive(
@@ -317,6 +338,21 @@ mod tests {
             tolerance: 0.25,
         };
         let want = place_naive(&inv, &view, &offsets, &par, h, w, &p);
+        // Both builds (the AVX2 one where it runs), against the definition.
+        simd::runs_or_skip(Level::Avx2, "placement_matches_one_sample_at_a_time (AVX2)");
+        for cap in [Level::Avx2, Level::Portable] {
+            let mut got = vec![0f32; inv.len()];
+            let simd = Dispatch::at_most(cap);
+            place_samples_with(&inv, &view, &offsets, &par, h, w, &p, &mut got, &simd).unwrap();
+            assert_eq!(simd.ran(), simd.allowed());
+            assert!(
+                want.iter()
+                    .zip(&got)
+                    .all(|(a, b)| a.to_bits() == b.to_bits()),
+                "{cap:?}"
+            );
+            assert!(got.iter().filter(|v| v.is_finite()).count() > m / 2);
+        }
         let mut got = vec![0f32; inv.len()];
         place_samples(&inv, &view, &offsets, &par, h, w, &p, &mut got).unwrap();
         assert!(
@@ -324,6 +360,5 @@ mod tests {
                 .zip(&got)
                 .all(|(a, b)| a.to_bits() == b.to_bits())
         );
-        assert!(got.iter().filter(|v| v.is_finite()).count() > m / 2);
     }
 }

@@ -8,7 +8,8 @@ mod bins;
 use self::bins::{Bins, bin_samples};
 use super::{MAX_CHANNELS, MAX_FACTOR, MAX_RADIUS, check_len, mul, positive};
 use crate::error::{Error, Result};
-use crate::{parallel, simd};
+use crate::parallel;
+use crate::simd::{self, Dispatch};
 
 /// Parameters of [`shift_and_add`].
 #[derive(Debug, Clone, Copy)]
@@ -86,6 +87,8 @@ struct SplatJob<'a> {
     /// The previous pass's estimate `(fine_h, fine_w, EST_LANES)` (`sum / wsum`, NaN
     /// where `wsum <= 1e-6`): samples are reweighted against it. `None`: the first pass.
     est: Option<&'a [f32]>,
+    /// Which builds of the loops may run.
+    simd: &'a Dispatch,
 }
 
 /// Where a pass writes one band's rows.
@@ -628,7 +631,7 @@ fn splat_pass<const C: usize, const L: usize>(job: &SplatJob<'_>, out: PassOut<'
             acc,
             out,
         };
-        simd::run_avx2_or_portable(true, task);
+        simd::run_avx2_or_portable(job.simd, task);
         Ok(())
     })
 }
@@ -734,6 +737,7 @@ pub fn shift_and_add(
         fine_w,
         params,
         PassOut::Sums(sum, wsum),
+        &Dispatch::auto(),
     )
 }
 
@@ -789,11 +793,12 @@ pub fn shift_and_add_mean(
         fine_w,
         params,
         PassOut::Mean(mean, wsum, have, min_weight),
+        &Dispatch::auto(),
     )
 }
 
-/// The passes of [`shift_and_add`] (sizes of the output checked by the caller); the
-/// last one writes `last`.
+/// The passes of [`shift_and_add`] (sizes of the output checked by the caller), with
+/// the builds `simd` allows (see [`crate::simd`]); the last one writes `last`.
 #[allow(clippy::too_many_arguments)]
 fn splat_all(
     positions: &[f32],
@@ -804,6 +809,7 @@ fn splat_all(
     fine_w: usize,
     params: &SplatParams,
     last: PassOut<'_>,
+    simd: &Dispatch,
 ) -> Result<()> {
     if !(1..=MAX_CHANNELS).contains(&channels) {
         return Err(Error::invalid_argument(
@@ -899,6 +905,7 @@ fn splat_all(
             fine_h,
             params,
             est: read,
+            simd,
         };
         let out = if pass == params.iterations {
             last.take()
@@ -920,6 +927,7 @@ fn splat_all(
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
+    use crate::simd::Level;
 
     #[test]
     fn exp_neg_matches_exp() {
@@ -1040,6 +1048,8 @@ mod tests {
 
     #[test]
     fn shift_and_add_matches_the_definition_bit_for_bit() {
+        // Both builds (the AVX2 one where it runs), against the definition.
+        simd::runs_or_skip(Level::Avx2, "shift_and_add_matches_the_definition (AVX2)");
         let mut seed = 99u64;
         let mut rnd = move || {
             seed = seed
@@ -1100,19 +1110,25 @@ mod tests {
                 huber: 0.05,
                 reject: 0.3,
             };
-            for weights in [None, Some(&wts[..])] {
+            for (weights, cap) in [
+                (None, Level::Avx2),
+                (Some(&wts[..]), Level::Avx2),
+                (None, Level::Portable),
+                (Some(&wts[..]), Level::Portable),
+            ] {
                 let (ws_ref, wsum_ref) = splat_naive(&pos, &val, weights, c, fh, fw, &p);
                 // NaN: an element the fusion does not write would show.
                 let mut sum = vec![f32::NAN; fh * fw * c];
                 let mut ws = vec![f32::NAN; fh * fw];
-                shift_and_add(&pos, &val, weights, c, fh, fw, &p, &mut sum, &mut ws).unwrap();
+                let simd = Dispatch::at_most(cap);
+                let out = PassOut::Sums(&mut sum, &mut ws);
+                splat_all(&pos, &val, weights, c, fh, fw, &p, out, &simd).unwrap();
+                assert_eq!(simd.ran(), simd.allowed());
                 let same =
                     |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits());
-                assert!(
-                    same(&ws, &wsum_ref),
-                    "wsum, C {c} r {radius} it {iterations}"
-                );
-                assert!(same(&sum, &ws_ref), "sum, C {c} r {radius} it {iterations}");
+                let what = format!("C {c} r {radius} it {iterations} {cap:?}");
+                assert!(same(&ws, &wsum_ref), "wsum, {what}");
+                assert!(same(&sum, &ws_ref), "sum, {what}");
             }
         }
     }
