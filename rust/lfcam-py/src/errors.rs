@@ -86,8 +86,10 @@ pub fn guarded<R>(py: Python<'_>, function: &str, f: impl FnOnce() -> PyResult<R
     })
 }
 
-/// Private test hook: raises the exception that the core error variant `kind`
+/// Private test hook (feature `test-hooks`): raises the exception that the core error
+/// variant `kind`
 /// (`"InvalidArgument"`, `"InvalidItem"`, `"Numerical"` or `"Internal"`) maps to.
+#[cfg(feature = "test-hooks")]
 #[pyfunction]
 pub fn _raise_core_error(py: Python<'_>, kind: &str) -> PyResult<()> {
     guarded(py, "_raise_core_error", || {
@@ -108,7 +110,9 @@ pub fn _raise_core_error(py: Python<'_>, kind: &str) -> PyResult<()> {
     })
 }
 
-/// Private test hook: panics inside [`guarded`], which must raise `LfcamError`.
+/// Private test hook (feature `test-hooks`): panics inside [`guarded`], which must
+/// raise `LfcamError`.
+#[cfg(feature = "test-hooks")]
 #[pyfunction]
 #[allow(clippy::panic)]
 pub fn _panic_for_test(py: Python<'_>) -> PyResult<()> {
