@@ -326,6 +326,7 @@ struct Setup<'a> {
     /// the few-view paths (module `fixed`).
     simd: &'a Dispatch,
     /// Whether the few-view paths may run (tests turn them off, to compare).
+    #[cfg_attr(not(target_arch = "x86_64"), allow(dead_code))]
     few_view: bool,
 }
 
