@@ -1,6 +1,6 @@
 """Type stub of the Rust extension module (rust/lfcam-py). Checked by mypy.stubtest."""
 
-from typing import Final, NoReturn, TypeVar, final
+from typing import Final, TypeVar, final
 
 import numpy as np
 from numpy.typing import NDArray
@@ -8,8 +8,6 @@ from numpy.typing import NDArray
 __all__ = [
     "RectifyPlan",
     "__version__",
-    "_panic_for_test",
-    "_raise_core_error",
     "btv_deblur",
     "crop_lenslets",
     "data_weights",
@@ -23,6 +21,7 @@ __all__ = [
     "set_num_threads",
     "shift_and_add",
     "shift_and_add_mean",
+    "simd_info",
     "triangulate",
     "weighted_median_fill",
 ]
@@ -195,11 +194,11 @@ def set_num_threads(n: int) -> None:
 def get_num_threads() -> int:
     """The number of threads lfcam's kernels run on."""
 
-def _raise_core_error(kind: str) -> NoReturn:
-    """Test hook: raise the exception a core error variant maps to."""
+def simd_info() -> dict[str, str]:
+    """Which SIMD builds run: setting (LFCAM_SIMD), cpu, level, then one per kernel family."""
 
-def _panic_for_test() -> NoReturn:
-    """Test hook: panic inside the panic guard (raises LfcamError)."""
+# Built with the cargo feature `test-hooks` only (not in release wheels), and not in
+# `__all__`: `_raise_core_error(kind: str) -> NoReturn` and `_panic_for_test() -> NoReturn`.
 
 def weighted_median_fill(
     values: NDArray[np.float32],

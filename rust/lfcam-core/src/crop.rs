@@ -148,7 +148,7 @@ pub fn crop_lenslets<T: Copy + Send + Sync>(
                 .and_then(|o| src.row_span(o.y0 + r, o.x0, w))
                 .filter(|s| s.len() == out_row.len())
                 .ok_or_else(|| {
-                    Error::invalid_argument("rects", format!("internal: row {r} of view {view}"))
+                    Error::internal("crop_lenslets", format!("row {r} of view {view}"))
                 })?;
             out_row.copy_from_slice(src_row);
         }

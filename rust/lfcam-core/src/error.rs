@@ -3,8 +3,9 @@
 /// Everything that can go wrong in a core function.
 ///
 /// The Python bindings map each variant to a class of the `lfcam.errors` family
-/// (`InvalidArgument` and `InvalidItem` to `InputError`, a `ValueError`). New variants
-/// may be added: the enum is `#[non_exhaustive]`.
+/// (`InvalidArgument` and `InvalidItem` to `InputError`, a `ValueError`; `Internal` to
+/// the family's base class `LfcamError`, since the caller is not at fault). New
+/// variants may be added: the enum is `#[non_exhaustive]`.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[non_exhaustive]
 pub enum Error {
@@ -26,12 +27,18 @@ pub enum Error {
         /// What is wrong with it.
         reason: String,
     },
-    /// Calibration data is missing, inconsistent or unusable.
-    #[error("{0}")]
-    Calibration(String),
     /// A numerical procedure failed (singular system, no convergence, non-finite result).
     #[error("{0}")]
     Numerical(String),
+    /// An invariant of lfcam itself is broken: a bug, never the caller's fault (for
+    /// example a size the function checked on entry disagreeing later).
+    #[error("internal error in {function}: {detail}; please report this")]
+    Internal {
+        /// The public function that found it.
+        function: &'static str,
+        /// What was found.
+        detail: String,
+    },
 }
 
 impl Error {
@@ -40,6 +47,14 @@ impl Error {
         Self::InvalidArgument {
             arg: arg.into(),
             reason: reason.into(),
+        }
+    }
+
+    /// Builds [`Error::Internal`].
+    pub fn internal(function: &'static str, detail: impl Into<String>) -> Self {
+        Self::Internal {
+            function,
+            detail: detail.into(),
         }
     }
 
@@ -71,8 +86,8 @@ mod tests {
             "rects[3]: outside the frame"
         );
         assert_eq!(
-            Error::Calibration("no views".into()).to_string(),
-            "no views"
+            Error::internal("rectify", "row 3").to_string(),
+            "internal error in rectify: row 3; please report this"
         );
         assert_eq!(Error::Numerical("singular".into()).to_string(), "singular");
     }

@@ -46,7 +46,11 @@
 //! [`for_each_row_chunk`] splits an output made of equal-length rows into tasks of
 //! whole rows: serial on the calling thread below [`SERIAL_BELOW_BYTES`] or with one
 //! thread, else in the pool, with tasks of about [`TASK_BYTES`] and at least
-//! [`TASKS_PER_THREAD`] tasks per thread. One loop body serves both paths.
+//! [`TASKS_PER_THREAD`] tasks per thread. One loop body serves both paths. Work that
+//! is not rows of one output comes in tasks the kernel makes itself (one per view, per
+//! band of a fine grid, per range of triangles), which [`map_tasks`] and
+//! [`for_each_task_init`] run under the same serial-or-pool rule. Kernels use these
+//! functions and never rayon directly.
 
 use std::sync::{Arc, Mutex, MutexGuard};
 
@@ -470,6 +474,64 @@ where
     }
 }
 
+/// `f(i)` for every `i` in `0..n`, one task each, collected in order: serially on the
+/// calling thread when `work_bytes` (the tasks' output or input, the kernel's measure
+/// of the work as for [`run_serially`]) is small, with one thread, or for one task;
+/// else in lfcam's pool. For a few coarse tasks whose results are put together
+/// afterwards (one per view, one per chunk of samples).
+///
+/// # Errors
+/// The pool's errors ([`install`]); the first error `f` returns (other tasks may or
+/// may not have run).
+pub fn map_tasks<T, F>(n: usize, work_bytes: usize, f: F) -> Result<Vec<T>>
+where
+    T: Send,
+    F: Fn(usize) -> Result<T> + Sync + Send,
+{
+    if n <= 1 || run_serially(work_bytes, num_threads()) {
+        (0..n).map(f).collect()
+    } else {
+        install(|| (0..n).into_par_iter().map(f).collect())?
+    }
+}
+
+/// `body(&mut state, i, item)` for the `i`-th of `items`, tasks the kernel made (each
+/// owning its part of the output: a band of rows, a frame buffer), one task per item,
+/// under the rule of [`map_tasks`]; `state` as in [`for_each_row_chunk_init`] (made by
+/// `init` once per run of tasks one thread does in a row; once in all when serial,
+/// where the items run in order).
+///
+/// # Errors
+/// The pool's errors ([`install`]); the first error `body` returns (other tasks may
+/// or may not have run).
+pub fn for_each_task_init<I, S, N, F>(
+    items: Vec<I>,
+    work_bytes: usize,
+    init: N,
+    body: F,
+) -> Result<()>
+where
+    I: Send,
+    N: Fn() -> S + Sync + Send,
+    F: Fn(&mut S, usize, I) -> Result<()> + Sync + Send,
+{
+    let task = |state: &mut S, (i, item): (usize, I)| body(state, i, item);
+    if items.len() <= 1 || run_serially(work_bytes, num_threads()) {
+        let mut state = init();
+        items
+            .into_iter()
+            .enumerate()
+            .try_for_each(|item| task(&mut state, item))
+    } else {
+        install(|| {
+            items
+                .into_par_iter()
+                .enumerate()
+                .try_for_each_init(&init, task)
+        })?
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -530,6 +592,50 @@ mod tests {
         let (mut a, mut b) = (vec![0u8; 6], vec![0u8; 4]);
         assert!(for_each_row_chunk_pair(&mut a, &mut b, 2, 1, |_, _, _| Ok(())).is_err());
         assert!(for_each_row_chunk_pair(&mut a, &mut b, 0, 1, |_, _, _| Ok(())).is_err());
+    }
+
+    #[test]
+    fn tasks_run_once_each_in_order_and_propagate_errors() {
+        for (n, bytes) in [(0usize, 0usize), (1, 1 << 30), (7, 10), (300, 1 << 30)] {
+            let got = map_tasks(n, bytes, |i| Ok(3 * i)).unwrap();
+            assert_eq!(got, (0..n).map(|i| 3 * i).collect::<Vec<_>>());
+            let mut out = vec![0usize; n];
+            let items: Vec<(usize, &mut usize)> = out.iter_mut().enumerate().collect();
+            for_each_task_init(
+                items,
+                bytes,
+                || 0usize,
+                |seen, i, (k, o)| {
+                    assert_eq!(i, k);
+                    *seen += 1;
+                    *o = i + 1;
+                    Ok(())
+                },
+            )
+            .unwrap();
+            assert!(out.iter().enumerate().all(|(i, &v)| v == i + 1));
+        }
+        let err = map_tasks(50, 1 << 30, |i| {
+            if i == 20 {
+                Err(Error::Numerical("task 20".into()))
+            } else {
+                Ok(i)
+            }
+        });
+        assert!(matches!(err, Err(Error::Numerical(_))));
+        let err = for_each_task_init(
+            vec![1, 2, 3],
+            1 << 30,
+            || (),
+            |(), i, _| {
+                if i == 1 {
+                    Err(Error::Numerical("task 1".into()))
+                } else {
+                    Ok(())
+                }
+            },
+        );
+        assert!(matches!(err, Err(Error::Numerical(_))));
     }
 
     #[test]

@@ -30,8 +30,6 @@
 //! `1/z`): a grid mesh shares a vertex among six triangles, and most triangles are
 //! then rejected by their bounding box from three indexed loads and a few shifts.
 
-use rayon::prelude::*;
-
 use crate::error::{Error, Result};
 use crate::parallel;
 
@@ -112,28 +110,20 @@ impl Vertex {
     }
 }
 
-/// Vertices per task of the vertex pass.
-const VERTICES_PER_TASK: usize = 64 * 1024;
-
 /// [`Vertex::new`] of every vertex, in lfcam's pool when there are many.
-fn project_vertices(vertices: &[[f32; 3]], threads: usize) -> Result<Vec<Vertex>> {
+fn project_vertices(vertices: &[[f32; 3]]) -> Result<Vec<Vertex>> {
     // (Collecting a parallel iterator instead, which skips this fill, measured 1.17x
     // slower on 2 threads.)
     let mut out = vec![Vertex::UNUSABLE; vertices.len()];
-    let body = |(o, v): (&mut [Vertex], &[[f32; 3]])| {
-        for (o, v) in o.iter_mut().zip(v) {
+    parallel::for_each_row_chunk(&mut out, 1, |first, out| {
+        let src = vertices
+            .get(first..first + out.len())
+            .ok_or_else(|| Error::internal("rasterize", format!("vertex {first}")))?;
+        for (o, v) in out.iter_mut().zip(src) {
             *o = Vertex::new(v);
         }
-    };
-    if parallel::run_serially(vertices.len().saturating_mul(16), threads) {
-        body((&mut out, vertices));
-    } else {
-        parallel::install(|| {
-            out.par_chunks_mut(VERTICES_PER_TASK)
-                .zip(vertices.par_chunks(VERTICES_PER_TASK))
-                .for_each(body);
-        })?;
-    }
+        Ok(())
+    })?;
     Ok(out)
 }
 
@@ -177,6 +167,13 @@ struct Frame<'f> {
     depth: &'f mut [f32],
     height: usize,
     width: usize,
+}
+
+/// Where a range of triangles is drawn: the target's colour and depth (the first
+/// range), or a frame buffer of its own, allocated by its task.
+enum Part<'a> {
+    Target(&'a mut [f32], &'a mut [f32]),
+    Buffer(&'a mut (Vec<f32>, Vec<f32>)),
 }
 
 /// Draws the triangles `range` of `mesh` (vertices set up as `verts`) into `frame`, in
@@ -384,7 +381,7 @@ pub fn rasterize(mesh: &ProjectedMesh<'_>, target: Target<'_>) -> Result<()> {
 
     let n_tri = mesh.faces.len();
     let threads = parallel::num_threads();
-    let verts = project_vertices(mesh.vertices, threads)?;
+    let verts = project_vertices(mesh.vertices)?;
     let parts = if parallel::run_serially(n_tri.saturating_mul(64), threads) {
         1
     } else {
@@ -397,49 +394,45 @@ pub fn rasterize(mesh: &ProjectedMesh<'_>, target: Target<'_>) -> Result<()> {
     let range = |k: usize| (k * per).min(n_tri)..((k + 1) * per).min(n_tri);
     // Range 0 into the target, range k >= 1 into a frame buffer of its own (allocated
     // by its task, so that the buffers' first touch runs in parallel too).
-    let first_range = |image: &mut [f32], depth: &mut [f32]| {
-        image.fill(f32::NAN);
-        depth.fill(f32::NAN);
-        let frame = Frame {
-            image,
-            depth,
-            height,
-            width,
-        };
-        draw_range(mesh, &verts, range(0), frame);
-    };
-    if parts == 1 {
-        first_range(image, depth);
-    } else {
-        let mut buffers: Vec<(Vec<f32>, Vec<f32>)> =
-            (1..parts).map(|_| (Vec::new(), Vec::new())).collect();
-        parallel::install(|| {
-            rayon::join(
-                || first_range(image, depth),
-                || {
-                    buffers
-                        .par_iter_mut()
-                        .enumerate()
-                        .for_each(|(k, (img, dep))| {
-                            *img = vec![f32::NAN; n_px * ch];
-                            *dep = vec![f32::NAN; n_px];
-                            let frame = Frame {
-                                image: img,
-                                depth: dep,
-                                height,
-                                width,
-                            };
-                            draw_range(mesh, &verts, range(k + 1), frame);
-                        });
-                },
-            )
-        })?;
+    let mut buffers: Vec<(Vec<f32>, Vec<f32>)> =
+        (1..parts).map(|_| (Vec::new(), Vec::new())).collect();
+    let frames = std::iter::once(Part::Target(&mut *image, &mut *depth))
+        .chain(buffers.iter_mut().map(Part::Buffer))
+        .collect();
+    parallel::for_each_task_init(
+        frames,
+        n_tri.saturating_mul(64),
+        || (),
+        |(), k, part| {
+            let (image, depth) = match part {
+                Part::Target(image, depth) => {
+                    image.fill(f32::NAN);
+                    depth.fill(f32::NAN);
+                    (image, depth)
+                }
+                Part::Buffer((img, dep)) => {
+                    *img = vec![f32::NAN; n_px * ch];
+                    *dep = vec![f32::NAN; n_px];
+                    (img.as_mut_slice(), dep.as_mut_slice())
+                }
+            };
+            let frame = Frame {
+                image,
+                depth,
+                height,
+                width,
+            };
+            draw_range(mesh, &verts, range(k), frame);
+            Ok(())
+        },
+    )?;
+    if parts > 1 {
         // Merge in range order: a later range wins only where strictly nearer.
         parallel::for_each_row_chunk_pair(image, depth, width * ch, width, |first, img, dep| {
             let (p0, p1) = (first * width, first * width + dep.len());
             for (b_img, b_dep) in &buffers {
                 let (Some(bi), Some(bd)) = (b_img.get(p0 * ch..p1 * ch), b_dep.get(p0..p1)) else {
-                    return Err(Error::invalid_argument("image", "internal: buffer size"));
+                    return Err(Error::internal("rasterize", "buffer size"));
                 };
                 for (((d, px), bz), bpx) in dep
                     .iter_mut()

@@ -42,6 +42,7 @@ use crate::remap::{
     Bicubic, Bilinear, BilinearQ32, Lanes, MAX_CHANNELS, Packed, Sampler, Taps, any_nan, first,
     four, last, lerp_lanes,
 };
+use crate::simd::{Dispatch, Level};
 
 pub use plan::RectifyPlan;
 
@@ -413,11 +414,19 @@ pub fn rectify<T: RawSample>(
     interp: Interp,
     out: &mut [f32],
 ) -> Result<()> {
-    rectify_with(raw, gains, crops, maps, views, interp, out, true)
+    rectify_with(
+        raw,
+        gains,
+        crops,
+        maps,
+        views,
+        interp,
+        out,
+        &Dispatch::auto(),
+    )
 }
 
-/// [`rectify`], with `simd = false` forcing the baseline build of the loops (see
-/// [`crate::simd`]).
+/// [`rectify`] with the builds `simd` allows (see [`crate::simd`]).
 #[allow(clippy::too_many_arguments)]
 fn rectify_with<T: RawSample>(
     raw: ImageView<'_, T>,
@@ -427,7 +436,7 @@ fn rectify_with<T: RawSample>(
     views: &[usize],
     interp: Interp,
     out: &mut [f32],
-    simd: bool,
+    simd: &Dispatch,
 ) -> Result<()> {
     let checked = check(&raw, &gains, crops, &maps, views)?;
     let expected: usize = checked.shape.iter().product();
@@ -457,9 +466,9 @@ fn rectify_with<T: RawSample>(
         (3, 3) => job.run::<3, 3>(interp, out),
         (4, 1) => job.run::<4, 1>(interp, out),
         (4, 4) => job.run::<4, 4>(interp, out),
-        (c, g) => Err(Error::invalid_argument(
-            "gains",
-            format!("internal: unexpected channel counts raw {c}, gains {g}"),
+        (c, g) => Err(Error::internal(
+            "rectify",
+            format!("unexpected channel counts raw {c}, gains {g}"),
         )),
     }
 }
@@ -560,8 +569,8 @@ struct Job<'a, T> {
     crops: &'a [Crop],
     maps: ViewMaps<'a>,
     views: &'a [usize],
-    /// Whether to run the AVX2 build of the loops if the CPU has AVX2.
-    simd: bool,
+    /// Which builds of the loops may run.
+    simd: &'a Dispatch,
 }
 
 impl<T: RawSample> Job<'_, T> {
@@ -586,7 +595,7 @@ impl<T: RawSample> Job<'_, T> {
                 let (j, v) = (g / h, g % h);
                 let n = (h - v).min(rest.len() / row_len);
                 let (run, tail) = std::mem::take(&mut rest).split_at_mut(n * row_len);
-                let view = *self.views.get(j).ok_or_else(|| internal(g))?;
+                let view = *self.views.get(j).ok_or_else(|| internal("rectify", g))?;
                 self.segment::<C, G, S>(view, v, run, &mut band)?;
                 rest = tail;
                 g += n;
@@ -595,7 +604,7 @@ impl<T: RawSample> Job<'_, T> {
         })
     }
 
-    /// [`Self::segment_impl`], compiled for AVX2 if the CPU has it (see
+    /// [`Self::segment_impl`], compiled for AVX2 if [`Self::simd`] selects it (see
     /// [`crate::simd`]), else for the baseline.
     fn segment<const C: usize, const G: usize, S: Sampler>(
         &self,
@@ -605,8 +614,9 @@ impl<T: RawSample> Job<'_, T> {
         band: &mut Vec<f32>,
     ) -> Result<()> {
         #[cfg(target_arch = "x86_64")]
-        if self.simd && crate::simd::has_avx2() {
-            // SAFETY: `segment_avx2` needs only AVX2, which `has_avx2` found on this CPU.
+        if self.simd.select(Level::Avx2) {
+            // SAFETY: `segment_avx2` needs only AVX2, which this CPU has: a `Dispatch`
+            // selects only levels `simd::level` allows.
             #[allow(unsafe_code)]
             let result = unsafe { self.segment_avx2::<C, G, S>(view, v0, out, band) };
             return result;
@@ -639,7 +649,10 @@ impl<T: RawSample> Job<'_, T> {
         out: &mut [f32],
         band: &mut Vec<f32>,
     ) -> Result<()> {
-        let crop = *self.crops.get(view).ok_or_else(|| internal(v0))?;
+        let crop = *self
+            .crops
+            .get(view)
+            .ok_or_else(|| internal("rectify", v0))?;
         let n_rows = out.len() / (self.maps.width() * C);
         let direct = Direct::<T, C, G> {
             raw: self.raw.as_slice(),
@@ -718,7 +731,11 @@ impl<T: RawSample> Job<'_, T> {
             if !(v - v0).is_multiple_of(EXTENT_ROW_STEP) && v + 1 != v0 + n_rows {
                 // Not sampled: only whether a position is kept.
                 if !any_kept {
-                    any_kept = match self.maps.mask_row(view, v).ok_or_else(|| internal(v))? {
+                    any_kept = match self
+                        .maps
+                        .mask_row(view, v)
+                        .ok_or_else(|| internal("rectify", v))?
+                    {
                         None => true,
                         Some(mask) => mask.iter().any(|&k| k != 0),
                     };
@@ -728,12 +745,16 @@ impl<T: RawSample> Job<'_, T> {
             let points = self
                 .maps
                 .warp_row(view, v)
-                .ok_or_else(|| internal(v))?
+                .ok_or_else(|| internal("rectify", v))?
                 .as_chunks::<2>()
                 .0;
             // The last position of a row is always seen: extremes are often there.
             let last = points.len().saturating_sub(1);
-            match self.maps.mask_row(view, v).ok_or_else(|| internal(v))? {
+            match self
+                .maps
+                .mask_row(view, v)
+                .ok_or_else(|| internal("rectify", v))?
+            {
                 None => {
                     any_kept = true;
                     for (i, &p) in points.iter().enumerate() {
@@ -777,8 +798,14 @@ impl<T: RawSample> Job<'_, T> {
         v: usize,
     ) -> Result<(&[[f32; 2]], impl Iterator<Item = &[u8]>)> {
         const KEEP_ALL: [u8; GROUP] = [1; GROUP];
-        let warp_row = self.maps.warp_row(view, v).ok_or_else(|| internal(v))?;
-        let mask_row = self.maps.mask_row(view, v).ok_or_else(|| internal(v))?;
+        let warp_row = self
+            .maps
+            .warp_row(view, v)
+            .ok_or_else(|| internal("rectify", v))?;
+        let mask_row = self
+            .maps
+            .mask_row(view, v)
+            .ok_or_else(|| internal("rectify", v))?;
         let keep = mask_row
             .into_iter()
             .flat_map(|m| m.chunks(GROUP))
@@ -805,7 +832,7 @@ impl<T: RawSample> Job<'_, T> {
         let mut wild = false;
         let x = crop.x0 + col0;
         for y in crop.y0 + row0..crop.y0 + row0 + bh {
-            let bad = || internal(y);
+            let bad = || internal("rectify", y);
             let raw = self.raw.row_span(y, x, bw).ok_or_else(bad)?;
             let gains = self.gains.row_span(y, x, bw).ok_or_else(bad)?;
             // Written as a select so that the loops vectorise.
@@ -909,7 +936,10 @@ impl<T: RawSample> Job<'_, T> {
     ) -> Result<()> {
         let data = band.data;
         // `fill_band` pads the band with 8 NaN values.
-        let nan_at = data.len().checked_sub(8).ok_or_else(|| internal(v0))?;
+        let nan_at = data
+            .len()
+            .checked_sub(8)
+            .ok_or_else(|| internal("rectify", v0))?;
         let as_i32 = |v: usize| i32::try_from(v).ok();
         let (Some(nan_at), Some(stride), Some(row0), Some(col0), Some(rows), Some(cols)) = (
             as_i32(nan_at),
@@ -1001,7 +1031,7 @@ impl<T: RawSample> Job<'_, T> {
                         pair8::<C>(data, top, right),
                         pair8::<C>(data, top + down as usize, right),
                     ) else {
-                        return Err(internal(v0 + k));
+                        return Err(internal("rectify", v0 + k));
                     };
                     let v = lerp_lanes(lerp_lanes(p00, p01, tx), lerp_lanes(p10, p11, tx), ty);
                     *px = if CHECK_NAN && any_nan(&v, C) {
@@ -1057,9 +1087,10 @@ fn pair8<const C: usize>(data: &[f32], start: usize, right: bool) -> Option<(Lan
     Some((a, if right { b } else { a }))
 }
 
-/// The error of a broken internal invariant (never the caller's fault).
-fn internal(at: usize) -> Error {
-    Error::invalid_argument("views", format!("internal: row {at}"))
+/// The error of a broken internal invariant of `function` at row `at` (never the
+/// caller's fault).
+fn internal(function: &'static str, at: usize) -> Error {
+    Error::internal(function, format!("row {at}"))
 }
 
 #[cfg(test)]
@@ -1169,6 +1200,9 @@ mod tests {
 
     #[test]
     fn avx2_and_baseline_builds_agree() {
+        if !crate::simd::runs_or_skip(Level::Avx2, "rectify avx2_and_baseline_builds_agree") {
+            return;
+        }
         // 2x2 views of 70x50 from a 150x110 RGB u16 frame, smooth warps with NaN
         // holes, a mask, a few zero gains (per channel and per pixel).
         let (fw, fh, vw, vh, rw, rh) = (150usize, 110usize, 70usize, 50usize, 90usize, 60usize);
@@ -1210,8 +1244,9 @@ mod tests {
             for masks in [None, Some(&masks[..])] {
                 let maps = ViewMaps::new(&warps, masks, 4, rh, rw).unwrap();
                 for interp in Interp::ALL {
-                    let results = [true, false].map(|simd| {
+                    let results = [Level::Avx2, Level::Portable].map(|cap| {
                         let mut out = vec![0f32; 4 * rh * rw * 3];
+                        let simd = Dispatch::at_most(cap);
                         rectify_with(
                             raw_v,
                             gains_v,
@@ -1220,9 +1255,10 @@ mod tests {
                             &[0, 1, 2, 3],
                             interp,
                             &mut out,
-                            simd,
+                            &simd,
                         )
                         .unwrap();
+                        assert_eq!(simd.ran(), cap, "{interp:?}");
                         out
                     });
                     let [a, b] = &results;

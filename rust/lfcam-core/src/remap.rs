@@ -482,9 +482,9 @@ fn remap_channels<const C: usize>(
     parallel::for_each_row_chunk(out, row_len, |first_row, rows| {
         for (k, out_row) in rows.chunks_exact_mut(row_len).enumerate() {
             let r = first_row + k;
-            let map_row = map.row(r).ok_or_else(|| {
-                Error::invalid_argument("map", format!("internal: no map row {r}"))
-            })?;
+            let map_row = map
+                .row(r)
+                .ok_or_else(|| Error::internal("remap_bilinear", format!("no map row {r}")))?;
             let (pixels, _) = out_row.as_chunks_mut::<C>();
             let (points, _) = map_row.as_chunks::<2>();
             for (px, &[x, y]) in pixels.iter_mut().zip(points) {

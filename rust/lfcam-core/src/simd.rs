@@ -1,80 +1,272 @@
-//! Runtime CPU dispatch: a kernel's loops compiled a second time for AVX2, and run
-//! when the CPU has it (x86-64 only).
+//! Runtime CPU dispatch: a kernel's loops compiled a second time for AVX2 (and, for
+//! one kernel, AVX-512), and run when the CPU has it (x86-64 only); the one switch
+//! that forces the portable builds everywhere, [`ENV_SIMD`].
 //!
-//! The kernels vectorise by the compiler (no intrinsics, but for one exception below).
-//! The wheel targets baseline x86-64 (SSE2, 4 float lanes); most CPUs in use have AVX2
-//! (8 lanes, three-operand instructions, blends). A kernel opts in by wrapping its
-//! per-task loop body, with everything it calls `#[inline(always)]`, in
-//! [`avx2_or_portable!`]: it expands to a function compiled with
-//! `#[target_feature(enable = "avx2")]` and a portable one, and picks the first when
-//! [`has_avx2`] says so. Floating-point results are identical
-//! (Rust never contracts `a * b + c` into an FMA, and AVX2 does not change IEEE
-//! arithmetic); tests compare both paths.
+//! # Which builds run
+//! [`level`] is the widest [`Level`] the kernels run in this process: the CPU's
+//! ([`cpu_level`], std's cached CPUID query), capped by `LFCAM_SIMD` (read once):
+//! `auto` (or unset) for the widest the CPU has, `avx2` for no AVX-512, `portable` for
+//! the portable builds only (other values: `auto`). Each kernel call makes a
+//! [`Dispatch`] ([`Dispatch::auto`]: up to [`level`]); tests make narrower ones to run
+//! a SIMD build and its portable twin side by side, and read back which ran
+//! ([`Dispatch::ran`]). [`simd_info`] reports the choice per kernel family.
 //!
+//! # The builds
+//! The kernels vectorise by the compiler (no intrinsics, but for the exceptions
+//! below). The wheel targets baseline x86-64 (SSE2, 4 float lanes); most CPUs in use
+//! have AVX2 (8 lanes, three-operand instructions, blends). A kernel opts in by
+//! wrapping its per-task loop body, with everything it calls `#[inline(always)]`, in
+//! `avx2_or_portable!` (or [`run_avx2_or_portable`] for generic code): it expands to
+//! a function compiled with `#[target_feature(enable = "avx2")]` and a portable one,
+//! and picks the first when the call's [`Dispatch`] selects AVX2. Floating-point
+//! results are identical (Rust never contracts `a * b + c` into an FMA, and AVX2 does
+//! not change IEEE arithmetic); tests compare both builds.
+//!
+//! # Unsafe code
 //! The crate's `unsafe` is here. First, this pattern: calling a `#[target_feature]`
 //! function is unsafe because running AVX2 instructions on a CPU without them is
-//! undefined behaviour; [`has_avx2`] checks the CPU first (std's cached CPUID query). It
-//! is used through the macro (triangulate) and written out in `rectify::Job::segment`,
-//! whose generic parameters the macro does not take, and in `triangulate::rows_task`,
-//! which calls the few-view paths `triangulate::avx2` and `triangulate::avx512` (after
-//! [`has_avx512`]): those are written with `std::arch` intrinsics (safe to call in
-//! `#[target_feature]` functions), because they keep whole arrays of vectors in
-//! registers, which the compiler's vectoriser does not do for arrays of floats. Second,
-//! one kernel written with intrinsics where the compiler's vectorisation falls short:
-//! [`bilinear_band`], the inner loop of `rectify::RectifyPlan` (raw-pointer loads at
-//! offsets clamped into the buffer, so that no value of its inputs can make it read
-//! outside).
+//! undefined behaviour; a [`Dispatch`] selects a level only if [`level`] allows it,
+//! which the CPU has. It is used through the macro (superres, triangulate) and written
+//! out in `rectify::Job::segment`, and in `triangulate::rows_task`, which calls the
+//! few-view paths `triangulate::avx2` and `triangulate::avx512`: those are written with
+//! `std::arch` intrinsics (safe to call in `#[target_feature]` functions), because they
+//! keep whole arrays of vectors in registers, which the compiler's vectoriser does not
+//! do for arrays of floats. Second, one kernel written with intrinsics where the
+//! compiler's vectorisation falls short: [`bilinear_band`], the inner loop of
+//! `rectify::RectifyPlan` (raw-pointer loads at offsets clamped into the buffer, so
+//! that no value of its inputs can make it read outside).
+//!
+//! # Portable twins
+//! Every SIMD build has a portable twin that tests compare it with, bit for bit, on
+//! the CPU they run on: the portable build of the same loops for the macro's kernels
+//! and `rectify`; the general path of `triangulate` for its few-view paths; the
+//! portable sampling loop of `RectifyPlan` (and the formula) for [`bilinear_band`].
+//! Such a test fails if the SIMD build did not run where [`level`] allows it, and is
+//! skipped with a printed reason where it does not (CPU without it, or `LFCAM_SIMD`).
 
-/// The `LFCAM_SIMD` environment variable (read once): `portable` forces the portable
-/// paths, `avx2` allows AVX2 but not AVX-512, for testing and comparison.
-#[cfg(target_arch = "x86_64")]
-fn simd_setting() -> &'static str {
-    use std::sync::OnceLock;
-    static SETTING: OnceLock<String> = OnceLock::new();
-    SETTING.get_or_init(|| {
-        std::env::var("LFCAM_SIMD")
-            .map_or_else(|_| String::new(), |v| v.trim().to_ascii_lowercase())
+use std::sync::OnceLock;
+use std::sync::atomic::{AtomicU8, Ordering};
+
+/// Environment variable capping the SIMD builds kernels run (read once, on first use):
+/// `auto` (default), `avx2` or `portable`.
+pub const ENV_SIMD: &str = "LFCAM_SIMD";
+
+/// A width of SIMD code, narrowest first: which build of a kernel's loops runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+#[non_exhaustive]
+pub enum Level {
+    /// The portable build (baseline x86-64: SSE2; any other CPU).
+    Portable,
+    /// AVX2 (x86-64).
+    Avx2,
+    /// AVX-512 foundation (AVX512F; x86-64, with AVX2).
+    Avx512,
+}
+
+impl Level {
+    /// Every level, narrowest first.
+    pub const ALL: [Self; 3] = [Self::Portable, Self::Avx2, Self::Avx512];
+
+    /// `"portable"`, `"avx2"` or `"avx512"`.
+    pub const fn name(self) -> &'static str {
+        match self {
+            Self::Portable => "portable",
+            Self::Avx2 => "avx2",
+            Self::Avx512 => "avx512",
+        }
+    }
+
+    const fn from_u8(v: u8) -> Self {
+        match v {
+            0 => Self::Portable,
+            1 => Self::Avx2,
+            _ => Self::Avx512,
+        }
+    }
+}
+
+/// The cap a value of [`ENV_SIMD`] sets: `None` for `auto` (and anything not
+/// understood), else the widest level allowed.
+fn parse_setting(value: &str) -> Option<Level> {
+    match value.trim().to_ascii_lowercase().as_str() {
+        "portable" => Some(Level::Portable),
+        "avx2" => Some(Level::Avx2),
+        _ => None,
+    }
+}
+
+/// The cap [`ENV_SIMD`] sets in this process (read once).
+fn setting() -> Option<Level> {
+    static SETTING: OnceLock<Option<Level>> = OnceLock::new();
+    *SETTING.get_or_init(|| {
+        std::env::var(ENV_SIMD)
+            .ok()
+            .as_deref()
+            .and_then(parse_setting)
     })
 }
 
-/// Whether this CPU runs AVX2 code (`false` off x86-64). `LFCAM_SIMD=portable` in the
-/// environment (read once) forces the portable path, for testing and comparison.
+/// The widest level this CPU runs: AVX-512 needs AVX512F and AVX2, AVX2 needs AVX2
+/// (`Portable` off x86-64).
+pub fn cpu_level() -> Level {
+    #[cfg(target_arch = "x86_64")]
+    {
+        let avx2 = std::arch::is_x86_feature_detected!("avx2");
+        if avx2 && std::arch::is_x86_feature_detected!("avx512f") {
+            Level::Avx512
+        } else if avx2 {
+            Level::Avx2
+        } else {
+            Level::Portable
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        Level::Portable
+    }
+}
+
+/// The widest level kernels run in this process: [`cpu_level`] capped by
+/// [`ENV_SIMD`] (decided once).
+#[inline]
+pub fn level() -> Level {
+    static LEVEL: OnceLock<Level> = OnceLock::new();
+    *LEVEL.get_or_init(|| cpu_level().min(setting().unwrap_or(Level::Avx512)))
+}
+
+/// Whether kernels run AVX2 code here ([`level`] at least [`Level::Avx2`]).
 #[inline]
 pub fn has_avx2() -> bool {
-    #[cfg(target_arch = "x86_64")]
-    {
-        simd_setting() != "portable" && std::arch::is_x86_feature_detected!("avx2")
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    {
-        false
-    }
+    level() >= Level::Avx2
 }
 
-/// Whether this CPU runs AVX-512 (AVX512F) code (`false` off x86-64, and with
-/// `LFCAM_SIMD=portable` or `LFCAM_SIMD=avx2` in the environment).
+/// Whether kernels run AVX-512 code here ([`level`] is [`Level::Avx512`]).
 #[inline]
 pub fn has_avx512() -> bool {
-    #[cfg(target_arch = "x86_64")]
-    {
-        !matches!(simd_setting(), "portable" | "avx2")
-            && std::arch::is_x86_feature_detected!("avx512f")
+    level() >= Level::Avx512
+}
+
+/// One kernel call's choice of builds: levels up to [`Dispatch::allowed`] may run.
+/// It records the widest that did ([`Dispatch::ran`]), so that a test comparing a
+/// SIMD build with its portable twin can check the SIMD build ran.
+#[derive(Debug)]
+pub struct Dispatch {
+    allowed: Level,
+    ran: AtomicU8,
+}
+
+impl Dispatch {
+    /// The widest builds this process runs ([`level`]): what kernels use.
+    pub fn auto() -> Self {
+        Self::at_most(Level::Avx512)
     }
-    #[cfg(not(target_arch = "x86_64"))]
-    {
-        false
+
+    /// Builds up to `cap`, and up to [`level`].
+    pub fn at_most(cap: Level) -> Self {
+        Self {
+            allowed: cap.min(level()),
+            ran: AtomicU8::new(Level::Portable as u8),
+        }
+    }
+
+    /// The widest level this call may run.
+    pub fn allowed(&self) -> Level {
+        self.allowed
+    }
+
+    /// Whether to run the build for `level` (this CPU has it when `true`); records
+    /// that it runs.
+    #[inline]
+    pub fn select(&self, level: Level) -> bool {
+        if self.allowed < level {
+            return false;
+        }
+        if self.ran.load(Ordering::Relaxed) < level as u8 {
+            self.ran.fetch_max(level as u8, Ordering::Relaxed);
+        }
+        true
+    }
+
+    /// The widest level a [`Self::select`] chose so far ([`Level::Portable`] if none).
+    pub fn ran(&self) -> Level {
+        Level::from_u8(self.ran.load(Ordering::Relaxed))
     }
 }
 
-/// `avx2_or_portable!(use_avx2, fn name(args) -> Ret { body })` defines `name`, which
-/// runs `body` compiled for AVX2 if `use_avx2` (an expression, evaluated at each call,
-/// normally [`has_avx2`]) is true and the CPU has AVX2, else compiled for the baseline.
-/// `body` should call `#[inline(always)]` functions only: code it calls without
-/// inlining runs as compiled for the baseline. In `body`, the constant `AVX2` says
-/// which build it is, for code that should differ (see `triangulate::sort_keys`).
+/// The kernel families with SIMD builds and the widest build each has (the general
+/// path of `triangulate` and its few-view paths counted apart).
+const KERNELS: [(&str, Level); 5] = [
+    ("rectify", Level::Avx2),
+    ("rectify_plan", Level::Avx2),
+    ("superres", Level::Avx2),
+    ("triangulate", Level::Avx2),
+    ("triangulate_few_views", Level::Avx512),
+];
+
+/// What [`simd_info`] reports.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct SimdInfo {
+    /// [`ENV_SIMD`]'s setting in effect: `"auto"`, `"avx2"` or `"portable"`.
+    pub setting: &'static str,
+    /// The widest level this CPU has ([`cpu_level`]).
+    pub cpu: Level,
+    /// The widest level kernels run ([`level`]).
+    pub level: Level,
+    /// Each kernel family with SIMD builds and the build it runs.
+    pub kernels: Vec<(&'static str, Level)>,
+}
+
+/// Which builds this process runs: the setting, the CPU's level, and per kernel family
+/// the build it runs.
+pub fn simd_info() -> SimdInfo {
+    let level = level();
+    SimdInfo {
+        setting: setting().map_or("auto", Level::name),
+        cpu: cpu_level(),
+        level,
+        kernels: KERNELS
+            .iter()
+            .map(|&(name, widest)| (name, widest.min(level)))
+            .collect(),
+    }
+}
+
+/// For a test comparing a SIMD build at `level` with its portable twin: whether this
+/// process runs that level (the test must then see it run), else `false` after
+/// printing, past the test harness's capture, why the comparison is skipped.
+#[cfg(test)]
+pub(crate) fn runs_or_skip(level: Level, test: &str) -> bool {
+    use std::io::Write;
+    if self::level() >= level {
+        return true;
+    }
+    let why = if cpu_level() < level {
+        "this CPU lacks it".to_owned()
+    } else {
+        format!(
+            "{ENV_SIMD}={} caps it",
+            setting().map_or("auto", Level::name)
+        )
+    };
+    // Written to stderr directly: `eprintln!` output is shown only for failing tests.
+    let _ = writeln!(
+        std::io::stderr(),
+        "SKIPPED {test}: the {} build does not run here ({why})",
+        level.name()
+    );
+    false
+}
+
+/// `avx2_or_portable!(dispatch, fn name(args) -> Ret { body })` defines `name`, which
+/// runs `body` compiled for AVX2 if `dispatch` (an expression of type [`Dispatch`] or a
+/// reference to one, evaluated at each call, in which the arguments are in scope)
+/// selects [`Level::Avx2`], else compiled for the baseline. `body` should call
+/// `#[inline(always)]` functions only: code it calls without inlining runs as compiled
+/// for the baseline. In `body`, the constant `AVX2` says which build it is, for code
+/// that should differ (see `triangulate::sort_keys`).
 macro_rules! avx2_or_portable {
     (
-        $use_avx2:expr,
+        $dispatch:expr,
         $(#[$meta:meta])*
         $vis:vis fn $name:ident$(<$($lt:lifetime),*>)?($($arg:ident : $ty:ty),* $(,)?) -> $ret:ty $body:block
     ) => {
@@ -90,8 +282,9 @@ macro_rules! avx2_or_portable {
             }
 
             #[cfg(target_arch = "x86_64")]
-            if $use_avx2 && $crate::simd::has_avx2() {
-                // SAFETY: `avx2` needs only AVX2, which `has_avx2` found on this CPU.
+            if $dispatch.select($crate::simd::Level::Avx2) {
+                // SAFETY: `avx2` needs only AVX2, which this CPU has: a `Dispatch`
+                // selects only levels `simd::level` allows.
                 #[allow(unsafe_code)]
                 let result = unsafe { avx2($($arg),*) };
                 return result;
@@ -113,26 +306,29 @@ pub trait Avx2Kernel {
     fn run<const AVX2: bool>(self) -> Self::Output;
 }
 
-/// Runs `kernel` compiled for AVX2 if `use_avx2` is true and [`has_avx2`] finds AVX2 on
-/// this CPU, else compiled for the baseline: the dispatch of [`avx2_or_portable!`] for
-/// code that is generic (the macro takes no type parameters), such as
-/// `rectify::RectifyPlan`'s loops. (A closure would not do: closures cannot be
-/// `#[inline(always)]`, and one that is not inlined runs as compiled for the baseline.)
+/// Runs `kernel` compiled for AVX2 if `dispatch` selects [`Level::Avx2`], else
+/// compiled for the baseline: the dispatch of `avx2_or_portable!` for code that is
+/// generic (the macro takes no type parameters), such as `rectify::RectifyPlan`'s
+/// loops. (A closure would not do: closures cannot be `#[inline(always)]`, and one
+/// that is not inlined runs as compiled for the baseline.)
 #[inline(always)]
-pub fn run_avx2_or_portable<K: Avx2Kernel>(use_avx2: bool, kernel: K) -> K::Output {
+pub fn run_avx2_or_portable<K: Avx2Kernel>(dispatch: &Dispatch, kernel: K) -> K::Output {
     #[cfg(target_arch = "x86_64")]
     {
         #[target_feature(enable = "avx2")]
         fn avx2<K: Avx2Kernel>(kernel: K) -> K::Output {
             kernel.run::<true>()
         }
-        if use_avx2 && has_avx2() {
-            // SAFETY: `avx2` needs only AVX2, which `has_avx2` found on this CPU.
+        if dispatch.select(Level::Avx2) {
+            // SAFETY: `avx2` needs only AVX2, which this CPU has: a `Dispatch` selects
+            // only levels `simd::level` allows.
             #[allow(unsafe_code)]
             let result = unsafe { avx2(kernel) };
             return result;
         }
     }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = dispatch;
     kernel.run::<false>()
 }
 
@@ -158,10 +354,10 @@ pub struct BandTaps<'a> {
 /// `p01` is `C` values after `p00` if `tx > 0` (else `p00` itself), `p10` `stride`
 /// after if `ty > 0`.
 ///
-/// Runs only where [`has_avx2`] finds AVX2 (x86-64); `None` there is nothing done
-/// (also when the lengths disagree: `taps` slices of one length `n`, `dst` of `n * C`,
-/// `C` not 3 or 4, or a band too short to hold one footprint). The caller then
-/// interpolates with portable code. Every read is inside `band` whatever the taps (a
+/// Runs only where [`has_avx2`] (AVX2 on this CPU, allowed by [`ENV_SIMD`]); `None` is
+/// nothing done (also when the lengths disagree: `taps` slices of one length `n`, `dst`
+/// of `n * C`, `C` not 3 or 4, or a band too short to hold one footprint). The caller
+/// then interpolates with portable code. Every read is inside `band` whatever the taps (a
 /// footprint that would leave the band is moved inside it: a wrong value, never a read
 /// outside); the callers' band holds every footprint, plus `stride + C + 4` values of
 /// slack after the last pixel read.
@@ -178,7 +374,8 @@ pub fn bilinear_band<const C: usize>(
         if !has_avx2() {
             return None;
         }
-        // SAFETY: `bilinear_band_avx2` needs only AVX2, which `has_avx2` found.
+        // SAFETY: `bilinear_band_avx2` needs only AVX2, which this CPU has when
+        // `has_avx2` says so.
         #[allow(unsafe_code)]
         return unsafe { bilinear_band_avx2::<C>(band, stride, base, taps, dst) };
     }
@@ -395,7 +592,7 @@ mod tests {
 
     #[test]
     fn bilinear_band_equals_scalar_and_stays_inside() {
-        if !has_avx2() {
+        if !runs_or_skip(Level::Avx2, "bilinear_band_equals_scalar_and_stays_inside") {
             return;
         }
         for c in [3usize, 4] {
@@ -465,6 +662,50 @@ mod tests {
                 );
             }
         }
+    }
+
+    #[test]
+    fn settings_cap_the_cpu_level() {
+        assert_eq!(parse_setting("portable"), Some(Level::Portable));
+        assert_eq!(parse_setting(" AVX2\n"), Some(Level::Avx2));
+        for auto in ["", "auto", "avx512", "sse"] {
+            assert_eq!(parse_setting(auto), None, "{auto:?}");
+        }
+        let cap = std::env::var(ENV_SIMD)
+            .ok()
+            .as_deref()
+            .and_then(parse_setting);
+        assert_eq!(setting(), cap);
+        assert_eq!(level(), cpu_level().min(cap.unwrap_or(Level::Avx512)));
+        let info = simd_info();
+        assert_eq!((info.cpu, info.level), (cpu_level(), level()));
+        assert!(info.kernels.iter().all(|&(_, l)| l <= level()));
+        // On this CPU, with no cap, the dispatcher picks what the CPU has.
+        #[cfg(target_arch = "x86_64")]
+        if cap.is_none() {
+            let avx2 = std::arch::is_x86_feature_detected!("avx2");
+            let avx512 = avx2 && std::arch::is_x86_feature_detected!("avx512f");
+            assert_eq!(has_avx2(), avx2);
+            assert_eq!(has_avx512(), avx512);
+            assert_eq!(info.setting, "auto");
+        }
+        if cap == Some(Level::Portable) {
+            assert!(!has_avx2() && info.kernels.iter().all(|&(_, l)| l == Level::Portable));
+        }
+    }
+
+    #[test]
+    fn dispatch_selects_up_to_its_cap_and_records_it() {
+        for cap in Level::ALL {
+            let d = Dispatch::at_most(cap);
+            assert_eq!(d.allowed(), cap.min(level()));
+            assert_eq!(d.ran(), Level::Portable);
+            for l in Level::ALL {
+                assert_eq!(d.select(l), l <= d.allowed(), "{cap:?} {l:?}");
+            }
+            assert_eq!(d.ran(), d.allowed());
+        }
+        assert_eq!(Dispatch::auto().allowed(), level());
     }
 
     fn bilinear_band_dispatch(

@@ -89,7 +89,7 @@ where
             .iter()
             .map(|p| p.get(first..first + len))
             .collect::<Option<Vec<_>>>()
-            .ok_or_else(|| Error::invalid_argument("stack", "internal: plane too short"))?;
+            .ok_or_else(|| Error::internal("nan_median", "plane too short"))?;
         let mut values = Vec::with_capacity(k);
         for (e, (mo, co)) in med.iter_mut().zip(cnt.iter_mut()).enumerate() {
             values.clear();
@@ -101,7 +101,7 @@ where
             );
             *mo = median_of(&mut values);
             *co = N::try_from(values.len())
-                .map_err(|_| Error::invalid_argument("count", "internal: count overflow"))?;
+                .map_err(|_| Error::internal("nan_median", "count overflow"))?;
         }
         Ok(())
     })

@@ -60,11 +60,10 @@
 //! time; it gives the same bits (tested) in about a third (AVX-512) or 60% (AVX2) of
 //! the instructions. The general path remains for more views and other CPUs.
 
-use rayon::prelude::*;
-
 use crate::error::{Error, Result};
 use crate::image::ImageView;
-use crate::{parallel, simd};
+use crate::parallel;
+use crate::simd::{self, Dispatch, Level};
 
 #[cfg(target_arch = "x86_64")]
 mod avx2;
@@ -323,12 +322,12 @@ struct Setup<'a> {
     params: Params,
     /// `1 / (CONFIDENCE_INFO * sum |o_i|^2)`.
     info_scale: f32,
-    /// Whether to run the AVX2 build of the loops if the CPU has AVX2 (see
-    /// [`crate::simd`]).
-    simd: bool,
-    /// Which few-view paths (module `fixed`) may run when [`Self::simd`] allows SIMD
-    /// (tests choose, to compare them).
-    fixed: Path,
+    /// Which builds may run (see [`crate::simd`]): of the general path's loops, and of
+    /// the few-view paths (module `fixed`).
+    simd: &'a Dispatch,
+    /// Whether the few-view paths may run (tests turn them off, to compare).
+    #[cfg_attr(not(target_arch = "x86_64"), allow(dead_code))]
+    few_view: bool,
 }
 
 impl<'a> Setup<'a> {
@@ -338,6 +337,7 @@ impl<'a> Setup<'a> {
         offsets: &[[f64; 2]],
         reference: usize,
         params: &Params,
+        simd: &'a Dispatch,
     ) -> Result<Self> {
         let [n, h, w, c] = flows.shape();
         if c != 2 {
@@ -444,8 +444,8 @@ impl<'a> Setup<'a> {
             half_network,
             params: *params,
             info_scale: (1.0 / (f64::from(CONFIDENCE_INFO) * total)) as f32,
-            simd: true,
-            fixed: Path::Auto,
+            simd,
+            few_view: true,
         })
     }
 
@@ -733,8 +733,7 @@ impl Setup<'_> {
     /// whether any lane has a usable view and whether every usable weight is 1.
     #[inline(always)]
     fn gather(&self, sc: &mut Scratch, y: usize, x0: usize, len: usize) -> Result<(bool, bool)> {
-        let internal =
-            || Error::invalid_argument("flows", format!("internal: row {y} out of range"));
+        let internal = || Error::internal("triangulate", format!("row {y} out of range"));
         let rows =
             sc.s.iter_mut()
                 .zip(sc.a.iter_mut())
@@ -1057,7 +1056,7 @@ impl Setup<'_> {
 }
 
 /// Triangulates rows `first_row ..` into `out`: on a few-view path (module `fixed`)
-/// if the CPU has AVX-512 or AVX2, else on the general path.
+/// if `setup.simd` selects AVX-512 or AVX2, else on the general path.
 fn rows_task(
     setup: &Setup<'_>,
     sc: &mut Scratch,
@@ -1065,16 +1064,16 @@ fn rows_task(
     out: Outputs<'_>,
 ) -> Result<()> {
     #[cfg(target_arch = "x86_64")]
-    if setup.simd && fixed::takes(setup) {
-        if setup.fixed == Path::Auto && simd::has_avx512() {
-            // SAFETY: `avx512::rows` needs only AVX512F, which `has_avx512` found on this
-            // CPU.
+    if setup.few_view && fixed::takes(setup) {
+        if setup.simd.select(Level::Avx512) {
+            // SAFETY: `avx512::rows` needs only AVX512F, which this CPU has: a
+            // `Dispatch` selects only levels `simd::level` allows.
             #[allow(unsafe_code)]
             let result = unsafe { avx512::rows(setup, first_row, out, &mut sc.avx512) };
             return result;
         }
-        if matches!(setup.fixed, Path::Auto | Path::Avx2) && simd::has_avx2() {
-            // SAFETY: `avx2::rows` needs only AVX2, which `has_avx2` found on this CPU.
+        if setup.simd.select(Level::Avx2) {
+            // SAFETY: `avx2::rows` needs only AVX2, which this CPU has (as above).
             #[allow(unsafe_code)]
             let result = unsafe { avx2::rows(setup, first_row, out, &mut sc.avx2) };
             return result;
@@ -1134,25 +1133,13 @@ pub fn triangulate(
     params: &Params,
     out: Outputs<'_>,
 ) -> Result<()> {
-    triangulate_with(flows, weights, offsets, reference, params, out, Path::Auto)
+    let simd = Dispatch::auto();
+    triangulate_with(flows, weights, offsets, reference, params, out, &simd, true)
 }
 
-/// Which code [`triangulate_with`] runs (tests compare them).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-#[cfg_attr(not(test), allow(dead_code))]
-enum Path {
-    /// The fastest this CPU has: what [`triangulate`] runs.
-    Auto,
-    /// The few-view AVX2 path if the CPU has AVX2 (never the AVX-512 one), else as
-    /// [`Path::General`].
-    Avx2,
-    /// The general path (AVX2 build if the CPU has AVX2), never a few-view path.
-    General,
-    /// The general path's baseline build.
-    Portable,
-}
-
-/// [`triangulate`] on the given `path`.
+/// [`triangulate`] with the builds `simd` allows, and the few-view paths if
+/// `few_view` (tests compare them).
+#[allow(clippy::too_many_arguments)]
 fn triangulate_with(
     flows: ViewStack<'_>,
     weights: Option<ViewStack<'_>>,
@@ -1160,11 +1147,11 @@ fn triangulate_with(
     reference: usize,
     params: &Params,
     out: Outputs<'_>,
-    path: Path,
+    simd: &Dispatch,
+    few_view: bool,
 ) -> Result<()> {
-    let mut setup = Setup::new(flows, weights, offsets, reference, params)?;
-    setup.simd = path != Path::Portable;
-    setup.fixed = path;
+    let mut setup = Setup::new(flows, weights, offsets, reference, params, simd)?;
+    setup.few_view = few_view;
     let (h, w) = (setup.height(), setup.width());
     let pixels = h * w;
     let lens = [
@@ -1193,18 +1180,12 @@ fn triangulate_with(
         .map(|(i, out)| (i * rows, out))
         .collect();
     let m = setup.views.len();
-    let body =
-        |sc: &mut Scratch, (first, out): (usize, Outputs<'_>)| rows_task(&setup, sc, first, out);
-    if parallel::run_serially(row_bytes.saturating_mul(h), threads) {
-        let mut sc = Scratch::new(m);
-        tasks.into_iter().try_for_each(|task| body(&mut sc, task))
-    } else {
-        parallel::install(|| {
-            tasks
-                .into_par_iter()
-                .try_for_each_init(|| Scratch::new(m), body)
-        })?
-    }
+    parallel::for_each_task_init(
+        tasks,
+        row_bytes.saturating_mul(h),
+        || Scratch::new(m),
+        |sc, _, (first, out)| rows_task(&setup, sc, first, out),
+    )
 }
 
 #[cfg(test)]
@@ -1356,6 +1337,9 @@ mod tests {
 
     #[test]
     fn avx2_and_baseline_builds_agree() {
+        if !simd::runs_or_skip(Level::Avx2, "triangulate avx2_and_baseline_builds_agree") {
+            return;
+        }
         // Noisy flows with outliers, holes and fractional weights, 3 rows of 2.5
         // blocks; weights 0/1 too (the unit path).
         let (n, h, w) = (12usize, 3usize, 2 * LANES + 37);
@@ -1391,6 +1375,7 @@ mod tests {
             let results = [Path::General, Path::Portable]
                 .map(|path| run(fs, ws, &offsets, reference, &Params::default(), path).unwrap());
             let [a, b] = &results;
+            assert_eq!((a.5, b.5), (Level::Avx2, Level::Portable));
             // Equal as numbers (a zero's sign may differ), NaN where NaN.
             let same = |x: &[f32], y: &[f32]| {
                 x.iter()
@@ -1403,8 +1388,23 @@ mod tests {
         }
     }
 
-    /// Outputs of one call on `path`, or its error message.
-    type Run = std::result::Result<(Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>, Vec<u8>), String>;
+    /// Which code a test runs.
+    #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+    enum Path {
+        /// What [`triangulate`] runs: the widest builds this process runs.
+        Auto,
+        /// The few-view AVX2 path (never the AVX-512 one) where it takes the views.
+        Avx2,
+        /// The general path's AVX2 build, never a few-view path.
+        General,
+        /// The general path's baseline build.
+        Portable,
+    }
+
+    /// Outputs of one call on `path` and the widest build that ran, or the error
+    /// message.
+    type Run =
+        std::result::Result<(Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>, Vec<u8>, Level), String>;
 
     fn run(
         flows: ViewStack<'_>,
@@ -1430,9 +1430,18 @@ mod tests {
             perpendicular: &mut q,
             n_used: &mut u,
         };
-        triangulate_with(flows, weights, offsets, reference, params, out, path)
-            .map_err(|e| e.to_string())?;
-        Ok((p, c, r, q, u))
+        let (cap, few_view) = match path {
+            Path::Auto => (Level::Avx512, true),
+            Path::Avx2 => (Level::Avx2, true),
+            Path::General => (Level::Avx2, false),
+            Path::Portable => (Level::Portable, false),
+        };
+        let simd = Dispatch::at_most(cap);
+        triangulate_with(
+            flows, weights, offsets, reference, params, out, &simd, few_view,
+        )
+        .map_err(|e| e.to_string())?;
+        Ok((p, c, r, q, u, simd.ran()))
     }
 
     /// The same bits (any NaN for NaN).
@@ -1443,10 +1452,17 @@ mod tests {
     }
 
     #[test]
+    #[cfg(target_arch = "x86_64")]
     fn few_view_paths_equal_the_general_path() {
         // Every view count the AVX2 path takes and one more, rows with a partial chunk
         // and a partial block, no / unit / fractional weights with holes, outliers,
         // pixels without any usable view, a zero offset, and several parameter sets.
+        let name = "few_view_paths_equal_the_general_path";
+        if !simd::runs_or_skip(Level::Avx2, name) {
+            return;
+        }
+        // The AVX-512 path is compared where it runs (`Path::Auto`).
+        simd::runs_or_skip(Level::Avx512, name);
         let mut seed = 11u64;
         let mut rnd = move || {
             seed = seed.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1);
@@ -1509,6 +1525,11 @@ mod tests {
             }
             let unit: Vec<f32> = frac.iter().map(|&v| f32::from(u8::from(v > 0.0))).collect();
             let fs = ViewStack::new(&flows, [n, h, w, 2], "flows").unwrap();
+            // The few-view paths take every view count up to their maximum.
+            let simd = Dispatch::auto();
+            let setup = Setup::new(fs, None, &offsets, reference, &params[0], &simd).unwrap();
+            let takes = fixed::takes(&setup);
+            assert_eq!(takes, setup.views.len() <= fixed::MAX_USED_VIEWS, "n = {n}");
             for weights in [None, Some(&unit), Some(&frac)] {
                 let ws = weights.map(|v| ViewStack::new(v, [n, h, w, 1], "weights").unwrap());
                 for p in &params {
@@ -1516,10 +1537,18 @@ mod tests {
                         continue;
                     }
                     let b = run(fs, ws, &offsets, reference, p, Path::General).unwrap();
+                    assert_eq!(b.5, Level::Avx2);
                     for path in [Path::Auto, Path::Avx2] {
                         let a = run(fs, ws, &offsets, reference, p, path).unwrap();
                         let what =
                             format!("{path:?}, n = {n}, weights {}, {p:?}", weights.is_some());
+                        // The few-view path ran: AVX-512 where this process runs it.
+                        let widest = if path == Path::Auto && takes {
+                            simd::level()
+                        } else {
+                            Level::Avx2
+                        };
+                        assert_eq!(a.5, widest, "{what}");
                         assert!(same_bits(&a.0, &b.0), "parallax, {what}");
                         assert!(same_bits(&a.1, &b.1), "confidence, {what}");
                         assert!(same_bits(&a.2, &b.2), "residual, {what}");
@@ -1536,6 +1565,10 @@ mod tests {
 
     #[test]
     fn few_view_paths_report_a_bad_weight_as_the_general_path() {
+        let name = "few_view_paths_report_a_bad_weight_as_the_general_path";
+        if !simd::runs_or_skip(Level::Avx2, name) {
+            return;
+        }
         let (n, h, w) = (12usize, 2usize, 1150usize);
         let offsets: Vec<[f64; 2]> = (0..n)
             .map(|i| [10.0 * (i % 4) as f64 - 10.0, 10.0 * (i / 4) as f64 - 10.0])

@@ -34,7 +34,6 @@ impl ErrorClass {
 
 static LFCAM_ERROR: ErrorClass = ErrorClass::new("LfcamError");
 static INPUT_ERROR: ErrorClass = ErrorClass::new("InputError");
-static CALIBRATION_ERROR: ErrorClass = ErrorClass::new("CalibrationError");
 static NUMERICAL_ERROR: ErrorClass = ErrorClass::new("NumericalError");
 
 /// `lfcam.InputError(message)`: for checks done in the bindings themselves.
@@ -54,8 +53,9 @@ pub fn internal_error(py: Python<'_>, function: &str, detail: impl std::fmt::Dis
 pub fn to_pyerr(py: Python<'_>, err: Error) -> PyErr {
     let class = match &err {
         Error::InvalidArgument { .. } | Error::InvalidItem { .. } => &INPUT_ERROR,
-        Error::Calibration(_) => &CALIBRATION_ERROR,
         Error::Numerical(_) => &NUMERICAL_ERROR,
+        // A bug in lfcam, not the caller's fault: not an `InputError`.
+        Error::Internal { .. } => &LFCAM_ERROR,
         // `Error` is `#[non_exhaustive]`, so this arm is required outside lfcam-core. A
         // variant added to the core without a class here still reaches Python as the
         // family's base class; add its arm here (and to `_raise_core_error`).
@@ -86,16 +86,18 @@ pub fn guarded<R>(py: Python<'_>, function: &str, f: impl FnOnce() -> PyResult<R
     })
 }
 
-/// Private test hook: raises the exception that the core error variant `kind`
-/// (`"InvalidArgument"`, `"InvalidItem"`, `"Calibration"` or `"Numerical"`) maps to.
+/// Private test hook (feature `test-hooks`): raises the exception that the core error
+/// variant `kind`
+/// (`"InvalidArgument"`, `"InvalidItem"`, `"Numerical"` or `"Internal"`) maps to.
+#[cfg(feature = "test-hooks")]
 #[pyfunction]
 pub fn _raise_core_error(py: Python<'_>, kind: &str) -> PyResult<()> {
     guarded(py, "_raise_core_error", || {
         let err = match kind {
             "InvalidArgument" => Error::invalid_argument("arg", "test InvalidArgument"),
             "InvalidItem" => Error::invalid_item("arg", 7, "test InvalidItem"),
-            "Calibration" => Error::Calibration("test Calibration".into()),
             "Numerical" => Error::Numerical("test Numerical".into()),
+            "Internal" => Error::internal("_raise_core_error", "test Internal"),
             other => {
                 return Err(input_error(
                     py,
@@ -108,7 +110,9 @@ pub fn _raise_core_error(py: Python<'_>, kind: &str) -> PyResult<()> {
     })
 }
 
-/// Private test hook: panics inside [`guarded`], which must raise `LfcamError`.
+/// Private test hook (feature `test-hooks`): panics inside [`guarded`], which must
+/// raise `LfcamError`.
+#[cfg(feature = "test-hooks")]
 #[pyfunction]
 #[allow(clippy::panic)]
 pub fn _panic_for_test(py: Python<'_>) -> PyResult<()> {

@@ -9,6 +9,7 @@ mod arrays;
 mod crop;
 mod errors;
 mod fill;
+mod info;
 mod raster;
 mod rectify;
 mod remap;
@@ -27,9 +28,9 @@ mod lfcam_ext {
     #[pymodule_export]
     use crate::crop::crop_lenslets;
     #[pymodule_export]
-    use crate::errors::{_panic_for_test, _raise_core_error};
-    #[pymodule_export]
     use crate::fill::weighted_median_fill;
+    #[pymodule_export]
+    use crate::info::simd_info;
     #[pymodule_export]
     use crate::raster::rasterize;
     #[pymodule_export]
@@ -49,6 +50,14 @@ mod lfcam_ext {
 
     #[pymodule_init]
     fn init(m: &Bound<'_, PyModule>) -> PyResult<()> {
+        // The test hooks are attributes only, not in `__all__`: the module exports the
+        // same names with and without them, as its stub declares.
+        #[cfg(feature = "test-hooks")]
+        {
+            use crate::errors::{_panic_for_test, _raise_core_error};
+            m.setattr("_raise_core_error", wrap_pyfunction!(_raise_core_error, m)?)?;
+            m.setattr("_panic_for_test", wrap_pyfunction!(_panic_for_test, m)?)?;
+        }
         m.add("__version__", env!("CARGO_PKG_VERSION"))
     }
 }

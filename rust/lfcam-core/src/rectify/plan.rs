@@ -24,14 +24,12 @@
 //!
 //! [`rectify`]: super::rectify
 
-use rayon::prelude::*;
-
 use super::{Crop, Interp, MIN_TASK_ROWS, RawSample, TAME, ViewMaps, check_crop, internal};
 use crate::error::{Error, Result};
 use crate::image::ImageView;
 use crate::parallel;
 use crate::remap::{Lanes, Linear, MAX_CHANNELS, any_nan, lerp_lanes};
-use crate::simd::{Avx2Kernel, BandTaps, bilinear_band};
+use crate::simd::{Avx2Kernel, BandTaps, Dispatch, bilinear_band};
 
 /// The rectified pixels with a value of a view, in order, as parallel vectors: the
 /// top-left pixel of each one's footprint, as its index `row * w + col` in the `w x h`
@@ -204,13 +202,14 @@ impl RectifyPlan {
                 Ok(crop)
             })
             .collect::<Result<Vec<_>>>()?;
-        let views = parallel::install(|| {
-            crops
-                .par_iter()
-                .enumerate()
-                .map(|(i, &crop)| build_view(&gains, crop, &maps, i))
-                .collect::<Result<Vec<_>>>()
-        })??;
+        // One task per view (its warps' bytes measure the work).
+        let work = crops.len() * maps.height() * maps.width() * 8;
+        let views = parallel::map_tasks(crops.len(), work, |i| {
+            let crop = *crops
+                .get(i)
+                .ok_or_else(|| Error::internal("RectifyPlan", format!("view {i}")))?;
+            build_view(&gains, crop, &maps, i)
+        })?;
         Ok(Self {
             raw_height: gains.height(),
             raw_width: gains.width(),
@@ -342,16 +341,16 @@ impl RectifyPlan {
         views: &[usize],
         out: &mut [f32],
     ) -> Result<()> {
-        self.rectify_with(raw, views, out, true)
+        self.rectify_with(raw, views, out, &Dispatch::auto())
     }
 
-    /// [`Self::rectify`], with `simd = false` forcing the baseline build of the loops.
+    /// [`Self::rectify`] with the builds `simd` allows (see [`crate::simd`]).
     fn rectify_with<T: RawSample>(
         &self,
         raw: ImageView<'_, T>,
         views: &[usize],
         out: &mut [f32],
-        simd: bool,
+        simd: &Dispatch,
     ) -> Result<()> {
         let shape = self.output_shape(&raw, views)?;
         let expected: usize = shape.iter().product();
@@ -372,9 +371,9 @@ impl RectifyPlan {
             (3, 3) => self.run::<T, 3, 3>(&raw, views, out, simd),
             (4, 1) => self.run::<T, 4, 1>(&raw, views, out, simd),
             (4, 4) => self.run::<T, 4, 4>(&raw, views, out, simd),
-            (c, g) => Err(Error::invalid_argument(
-                "raw",
-                format!("internal: unexpected channel counts raw {c}, gains {g}"),
+            (c, g) => Err(Error::internal(
+                "RectifyPlan.rectify",
+                format!("unexpected channel counts raw {c}, gains {g}"),
             )),
         }
     }
@@ -386,7 +385,7 @@ impl RectifyPlan {
         raw: &ImageView<'_, T>,
         views: &[usize],
         out: &mut [f32],
-        simd: bool,
+        simd: &Dispatch,
     ) -> Result<()> {
         let h = self.height;
         let row_len = self.width * C;
@@ -406,7 +405,7 @@ impl RectifyPlan {
                     let view = views
                         .get(j)
                         .and_then(|&i| self.views.get(i))
-                        .ok_or_else(|| internal(g))?;
+                        .ok_or_else(|| internal("RectifyPlan.rectify", g))?;
                     let segment = Segment::<'_, '_, T, C, G> {
                         plan: self,
                         view,
@@ -442,7 +441,10 @@ impl RectifyPlan {
     ) -> Result<()> {
         let row_len = self.width * C;
         let n = out.len() / row_len;
-        let rows = view.rows.get(v0..v0 + n).ok_or_else(|| internal(v0))?;
+        let rows = view
+            .rows
+            .get(v0..v0 + n)
+            .ok_or_else(|| internal("RectifyPlan.rectify", v0))?;
         // The band: the rows' footprint box.
         let mut cols = (usize::MAX, 0);
         let mut rws = (usize::MAX, 0);
@@ -457,12 +459,13 @@ impl RectifyPlan {
         let (c0, bw) = (cols.0, cols.1 - cols.0 + 1);
         let (r0, bh) = (rws.0, rws.1 - rws.0 + 1);
         let band = &mut scratch.band;
-        fill_band::<T, C, G>(view, raw, (c0, bw), (r0, bh), band).ok_or_else(|| internal(v0))?;
+        fill_band::<T, C, G>(view, raw, (c0, bw), (r0, bh), band)
+            .ok_or_else(|| internal("RectifyPlan.rectify", v0))?;
         // Band pixel `(r, c)` of the crop is at `(r - r0) * stride + c * C`: a tap at
         // crop index `at` starts at `(at - base) * C`.
         let (stride, base) = (view.crop.w * C, r0 * view.crop.w);
         for (k, (row, out_row)) in rows.iter().zip(out.chunks_exact_mut(row_len)).enumerate() {
-            let bad = || internal(v0 + k);
+            let bad = || internal("RectifyPlan.rectify", v0 + k);
             let runs = view.runs.get(row.runs.0..row.runs.1).ok_or_else(bad)?;
             let mut taps = view.taps.get(row.taps.0..row.taps.1).ok_or_else(bad)?;
             let mut done = 0;
@@ -707,9 +710,9 @@ fn build_view(
     // Per crop row, the columns footprints read, inclusive; lo > hi for none.
     let mut used = vec![(usize::MAX, 0usize); h];
     let mut wild = false;
-    let status = gain_status(gains, crop).ok_or_else(|| internal(0))?;
+    let status = gain_status(gains, crop).ok_or_else(|| internal("RectifyPlan", 0))?;
     for v in 0..maps.height() {
-        let bad = || internal(v);
+        let bad = || internal("RectifyPlan", v);
         let (points, _) = maps.warp_row(i, v).ok_or_else(bad)?.as_chunks::<2>();
         let mask = maps.mask_row(i, v).ok_or_else(bad)?;
         let (runs0, taps0) = (runs.len(), taps.len());
@@ -771,7 +774,7 @@ fn build_view(
         }
         let span = gains
             .row_span(crop.y0 + y, crop.x0 + lo, hi + 1 - lo)
-            .ok_or_else(|| internal(y))?;
+            .ok_or_else(|| internal("RectifyPlan", y))?;
         *gr = GainRow {
             lo,
             hi: hi + 1,
@@ -804,12 +807,17 @@ fn run(start: usize, end: usize) -> Option<(u32, u32)> {
 mod tests {
     use super::super::rectify;
     use super::*;
+    use crate::simd::{Level, runs_or_skip};
 
     #[test]
     fn plan_equals_rectify_bit_for_bit() {
         // 2x2 views of 70x50 from a 150x110 frame, smooth warps with NaN holes, a mask,
         // zero gains, every channel layout, u8, u16 and f32 (with a NaN and an
-        // infinity), serial and parallel, AVX2 and baseline.
+        // infinity), serial and parallel, AVX2 (where it runs) and baseline.
+        runs_or_skip(
+            Level::Avx2,
+            "plan_equals_rectify_bit_for_bit (its AVX2 half)",
+        );
         let (fw, fh, vw, vh, rw, rh) = (150usize, 110usize, 70usize, 50usize, 90usize, 60usize);
         let crops: Vec<[i64; 4]> = (0..4)
             .map(|i| [5 + 72 * (i % 2), 4 + 52 * (i / 2), vw as i64, vh as i64])
@@ -878,10 +886,13 @@ mod tests {
                             )
                             .unwrap();
                             assert!(want.iter().filter(|v| v.is_finite()).count() > len / 2);
-                            for simd in [true, false] {
+                            for cap in [Level::Avx2, Level::Portable] {
                                 let mut got = vec![7f32; len];
-                                plan.rectify_with(raw_v, &views, &mut got, simd).unwrap();
+                                let simd = Dispatch::at_most(cap);
+                                plan.rectify_with(raw_v, &views, &mut got, &simd).unwrap();
                                 check(&want, &got);
+                                // The SIMD build ran where it can (see `simd::runs_or_skip`).
+                                assert_eq!(simd.ran(), simd.allowed());
                             }
                         }};
                     }

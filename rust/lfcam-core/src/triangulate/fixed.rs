@@ -281,7 +281,7 @@ pub(super) fn bad_weight(
             }
         }
     }
-    Error::invalid_argument("weights", "internal: no bad weight found")
+    Error::internal("triangulate", "no bad weight found")
 }
 
 /// The estimator, for the `#[target_feature]` list `$features`, in a module that defines
@@ -693,8 +693,7 @@ macro_rules! estimator {
             out: Outputs<'_>,
             buffer: &mut Buffer,
         ) -> Result<()> {
-            let internal =
-                || Error::invalid_argument("flows", "internal: view count or row out of range");
+            let internal = || Error::internal("triangulate", "view count or row out of range");
             let views: &[UsedView; M] =
                 setup.views.as_slice().try_into().map_err(|_| internal())?;
             let w = setup.width();
@@ -825,9 +824,9 @@ macro_rules! estimator {
                 14 => rows_of::<14>(setup, first_row, out, buffer),
                 15 => rows_of::<15>(setup, first_row, out, buffer),
                 16 => rows_of::<16>(setup, first_row, out, buffer),
-                m => Err(Error::invalid_argument(
-                    "flows",
-                    format!("internal: {m} used views on the few-view path"),
+                m => Err(Error::internal(
+                    "triangulate",
+                    format!("{m} used views on the few-view path"),
                 )),
             }
         }
