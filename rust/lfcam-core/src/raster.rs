@@ -1,10 +1,10 @@
 //! Z-buffered triangle rasterisation with perspective-correct interpolation: the
-//! renderer of depth meshes (novel views, DESIGN.md section 5).
+//! renderer of depth meshes (docs/design.md, "Novel views").
 //!
 //! # Conventions
 //! - Vertices arrive already projected: `(x, y, z)` with `x` the column and `y` the row
 //!   of the target image in pixels, `z > 0` the depth along the viewing axis (any unit).
-//!   Pixel `(u, v)` is centred at integer coordinates `(u, v)` (DESIGN.md section 2).
+//!   Pixel `(u, v)` is centred at integer coordinates `(u, v)` (docs/design.md, "Pixel centres").
 //! - A pixel centre is inside a triangle when all three edge functions are positive, or
 //!   zero on an edge the triangle owns. Edge functions are evaluated exactly on vertex
 //!   positions snapped to 1/[`SUBPIXEL`] px (integer arithmetic), and an edge is owned

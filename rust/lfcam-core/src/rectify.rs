@@ -1,4 +1,4 @@
-//! Rectification: the fused per-view pass of DESIGN.md section 5, gain, crop and remap
+//! Rectification: the fused per-view pass (docs/design.md, "Rectification"): gain, crop and remap
 //! in one read of the raw frame.
 //!
 //! For each selected view `i` and rectified pixel `(u, v)`, the raw position is

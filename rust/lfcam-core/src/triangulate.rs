@@ -1,4 +1,4 @@
-//! Plane + parallax triangulation (DESIGN.md section 3): the parallax `s` of every
+//! Plane + parallax triangulation (docs/design.md, "Triangulation"): the parallax `s` of every
 //! reference pixel from the optical flows to all views at once, robustly.
 //!
 //! # The estimator, per reference pixel `p`

@@ -1,4 +1,4 @@
-//! Super-resolution kernels (DESIGN.md section 5): warp-map inversion, placement of raw
+//! Super-resolution kernels (docs/design.md, "Super-resolution"): warp-map inversion, placement of raw
 //! samples in the reference view's rectified frame, robust shift-and-add onto an
 //! r-times finer grid, and bilateral-TV deblurring (Farsiu, Robinson, Elad, Milanfar
 //! 2004, "Fast and robust multiframe super resolution").
@@ -6,7 +6,7 @@
 //! # Conventions
 //! Positions follow OpenCV: `(x, y)`, `x` the column, pixel centres at integers. A
 //! rectified position `x` lands on the `r`-times finer grid at `X = (x + 0.5) r - 0.5`
-//! (DESIGN.md section 2: fine pixel `U` sits at rectified `(U + 0.5) / r - 0.5`).
+//! (docs/design.md, "Pixel centres": fine pixel `U` sits at rectified `(U + 0.5) / r - 0.5`).
 //!
 //! # Indexing
 //! Every function checks all sizes up front; the inner loops then index slices whose

@@ -63,7 +63,7 @@ pub struct PlaceParams {
 ///
 /// For raw pixel `k` of view `i = view[k]` (skipped if negative) at rectified position
 /// `q = inv[k]` in its own view, finds the reference point `p` with
-/// `p + o_i s(p) = q` (DESIGN.md section 3) by the fixed-point iteration
+/// `p + o_i s(p) = q` (docs/design.md, "Plane and parallax") by the fixed-point iteration
 /// `p <- q - o_i s(p)` from `p = q`, `s` sampled bilinearly from `parallax` `(h, w)`
 /// (NaN: unknown). Writes `p` to `out` (same layout as `inv`), NaN where the
 /// iteration did not reach `tolerance` or the parallax is unknown. The reference view
