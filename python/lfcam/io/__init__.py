@@ -9,6 +9,9 @@ from .formats import read_flo, read_pfm, write_pfm
 from .images import (
     BAYER_PATTERNS,
     IMAGE_EXTENSIONS,
+    MAX_IMAGE_FILE_BYTES,
+    MAX_IMAGE_PIXELS,
+    MAX_IMAGE_SIDE,
     demosaic,
     is_image_file,
     read_image,
@@ -21,6 +24,9 @@ from .ply import write_ply
 __all__ = [
     "BAYER_PATTERNS",
     "IMAGE_EXTENSIONS",
+    "MAX_IMAGE_FILE_BYTES",
+    "MAX_IMAGE_PIXELS",
+    "MAX_IMAGE_SIDE",
     "atomic_folder",
     "atomic_output",
     "colour_depth",
