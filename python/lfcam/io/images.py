@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import io
 import os
-import stat
 import struct
 from pathlib import Path
 
@@ -17,6 +16,8 @@ import cv2
 import numpy as np
 
 from ..errors import InputError
+from .files import MAX_IMAGE_FILE_BYTES, read_file_bytes
+from .raw import RAW_EXTENSIONS, is_camera_raw, read_camera_raw
 
 __all__ = [
     "BAYER_PATTERNS",
@@ -39,7 +40,8 @@ BAYER_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
 _CV_BAYER = {"RGGB": "BG", "BGGR": "RG", "GRBG": "GB", "GBRG": "GR"}
 
 #: File extensions (lower case) lfcam reads as images: every folder scan uses this list.
-IMAGE_EXTENSIONS = (".png", ".tif", ".tiff", ".jpg", ".jpeg")
+#: Camera raw files (:data:`lfcam.io.raw.RAW_EXTENSIONS`) need the extra ``lfcam[raw]``.
+IMAGE_EXTENSIONS = (".png", ".tif", ".tiff", ".jpg", ".jpeg", *RAW_EXTENSIONS)
 #: File extensions lfcam writes images to.
 WRITABLE_EXTENSIONS = (".png", ".tif", ".tiff")
 
@@ -49,10 +51,6 @@ MAX_IMAGE_SIDE = 65_535
 #: Largest number of pixels (width x height) of an image lfcam reads: 2**28, about
 #: 268 megapixels (1 GiB per float32 channel), beyond any light-field sensor.
 MAX_IMAGE_PIXELS = 1 << 28
-#: Largest image file lfcam reads into memory, bytes (a 16-bit RGB TIFF at
-#: ``MAX_IMAGE_PIXELS`` is 1.5 GiB).
-MAX_IMAGE_FILE_BYTES = 1 << 31
-
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 # PNG colour type -> channels (0 grey, 2 RGB, 3 palette, 4 grey + alpha, 6 RGBA).
 _PNG_CHANNELS = {0: 1, 2: 3, 3: 3, 4: 2, 6: 4}
@@ -112,31 +110,6 @@ def _check_size(width: int, height: int, channels: int, where: str) -> None:
             f"{where}: the header declares a {width} x {height} image, larger than lfcam "
             f"reads ({MAX_IMAGE_SIDE} px a side, {MAX_IMAGE_PIXELS} px in all)"
         )
-
-
-def _read_bytes(p: Path) -> bytes:
-    """A file's bytes, read by Python (any byte in its name works) within the size limit."""
-    try:
-        # O_NONBLOCK: opening a FIFO must not wait for a writer (checked just below).
-        fd = os.open(p, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
-        with os.fdopen(fd, "rb") as fh:
-            st = os.fstat(fh.fileno())
-            if stat.S_ISDIR(st.st_mode):
-                raise InputError(f"{p}: is a folder, not an image")
-            if not stat.S_ISREG(st.st_mode):  # a FIFO or device would block or never end
-                raise InputError(f"{p}: not a regular file")
-            size = st.st_size
-            if size > MAX_IMAGE_FILE_BYTES:
-                raise InputError(
-                    f"{p}: {size} bytes, larger than lfcam reads ({MAX_IMAGE_FILE_BYTES})"
-                )
-            return fh.read(MAX_IMAGE_FILE_BYTES + 1)
-    except IsADirectoryError:
-        raise InputError(f"{p}: is a folder, not an image") from None
-    except FileNotFoundError:
-        raise InputError(f"{p}: no such file") from None
-    except OSError as e:
-        raise InputError(f"{p}: cannot read ({e.strerror or e})") from None
 
 
 def _decode_tiff(data: bytes, where: str) -> np.ndarray:
@@ -199,7 +172,7 @@ def is_image_file(path: Path) -> bool:
 
 
 def read_image(path: str | os.PathLike[str]) -> np.ndarray:
-    """Read a PNG, TIFF or JPEG image without changing its bit depth.
+    """Read a PNG, TIFF, JPEG or camera raw image without changing its bit depth.
 
     Parameters
     ----------
@@ -210,7 +183,8 @@ def read_image(path: str | os.PathLike[str]) -> np.ndarray:
     -------
     numpy.ndarray
         ``(H, W)`` for grey or Bayer, ``(H, W, 3)`` RGB otherwise (an alpha
-        channel is dropped); uint8, uint16 or float32 as stored.
+        channel is dropped); uint8, uint16 or float32 as stored. A camera raw file
+        comes back demosaiced, linear uint16 RGB (:func:`lfcam.io.raw.read_camera_raw`).
 
     Raises
     ------
@@ -227,15 +201,17 @@ def read_image(path: str | os.PathLike[str]) -> np.ndarray:
     p = Path(path)
     ext = p.suffix.lower()
     if ext not in IMAGE_EXTENSIONS:
-        raise InputError(f"{p}: unsupported image type {p.suffix!r} (use PNG, TIFF or JPEG)")
-    data = _read_bytes(p)
-    where = str(p)
-    if ext in (".tif", ".tiff"):
-        img = _decode_tiff(data, where)
+        raise InputError(
+            f"{p}: unsupported image type {p.suffix!r} (use PNG, TIFF, JPEG or camera raw)"
+        )
+    if is_camera_raw(p):
+        img = read_camera_raw(p)[0]
+    elif ext in (".tif", ".tiff"):
+        img = _decode_tiff(read_file_bytes(p, MAX_IMAGE_FILE_BYTES), str(p))
         if img.ndim == 3 and img.shape[2] == 1:
             img = img[..., 0]
     else:
-        img = _decode_cv2(data, ext, where)
+        img = _decode_cv2(read_file_bytes(p, MAX_IMAGE_FILE_BYTES), ext, str(p))
     if img.ndim == 3 and img.shape[2] == 4:
         img = img[..., :3]
     if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] != 3):
@@ -294,9 +270,12 @@ def read_raw(path: str | os.PathLike[str], bayer: str | None = None) -> np.ndarr
     Parameters
     ----------
     path : path-like
-        PNG, TIFF (8/16-bit or float32) or JPEG.
+        PNG, TIFF (8/16-bit or float32), JPEG, or a camera raw file (DNG, CR2, NEF,
+        ARW, ...; needs ``pip install "lfcam[raw]"``).
     bayer : {'RGGB', 'BGGR', 'GRBG', 'GBRG'}, optional
-        The sensor's mosaic, for single-channel Bayer frames.
+        The sensor's mosaic, for single-channel Bayer frames. A camera raw file is
+        then read as its mosaic (which must be ``bayer``) and demosaiced here like any
+        Bayer frame; without ``bayer`` LibRaw demosaics it.
 
     Returns
     -------
@@ -307,7 +286,16 @@ def read_raw(path: str | os.PathLike[str], bayer: str | None = None) -> np.ndarr
     --------
     >>> raw = lfcam.read_raw("capture.png")                 # doctest: +SKIP
     >>> raw = lfcam.read_raw("capture.tiff", bayer="RGGB")  # doctest: +SKIP
+    >>> raw = lfcam.read_raw("capture.dng")                 # doctest: +SKIP
     """
+    if bayer is not None and is_camera_raw(path) and Path(path).is_file():
+        mosaic, cfa = read_camera_raw(path, mosaic=True)
+        if cfa != bayer:
+            raise InputError(
+                f"{path}: the file's colour filter mosaic is {cfa}, but the calibration"
+                f" says --bayer {bayer}"
+            )
+        return demosaic(mosaic, bayer, name=str(path))
     img = read_image(path)
     if bayer is not None:
         if img.ndim != 2:
