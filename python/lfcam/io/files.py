@@ -40,5 +40,7 @@ def read_file_bytes(path: str | os.PathLike[str], limit: int) -> bytes:
             return fh.read(limit + 1)
     except FileNotFoundError:
         raise InputError(f"{p}: no such file") from None
+    except IsADirectoryError:
+        raise InputError(f"{p}: is a folder, not a file") from None
     except OSError as e:
         raise InputError(f"{p}: cannot read ({e.strerror or e})") from None
