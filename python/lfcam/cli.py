@@ -7,18 +7,39 @@ argument), 1 an unexpected internal error.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 from .errors import CalibrationError, InputError, LfcamError
 
 EXIT_OK = 0
 EXIT_INTERNAL = 1
 EXIT_INPUT = 2
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with a one-line usage error naming the argument (exit 2)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(EXIT_INPUT, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _check_output_folder(path: Path, flag: str) -> None:
+    """Refuse an output folder that cannot be made or written, before any long work."""
+    if path.exists() and not path.is_dir():
+        raise InputError(f"{flag} {path}: exists and is not a folder")
+    parent = path
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise InputError(f"{flag} {path}: {parent} is a file, not a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError(f"{flag} {path}: {parent} is not writable")
 
 
 def _pair(text: str, sep: str, name: str) -> tuple[int, int]:
@@ -211,6 +232,8 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
         raise InputError(f"{out}: exists (use --overwrite to replace it)")
     if not out.parent.is_dir():
         raise InputError(f"{out}: folder {out.parent} does not exist")
+    if not os.access(out.parent, os.W_OK | os.X_OK):
+        raise InputError(f"{out}: folder {out.parent} is not writable")
     steps = ["layout", "scale", "warp", "depth"]
     t0 = time.perf_counter()
     with _progress(len(steps) + 3, "calibrate") as bar:
@@ -270,6 +293,10 @@ def _cmd_info(args: argparse.Namespace) -> int:
 # lfcam process
 # ---------------------------------------------------------------------------
 EXIT_PARTIAL = 3
+#: Most processes ``--jobs`` may start, and most ``--orbit`` frames (two minutes of
+#: video at 30 frames per second): beyond them a run would not end in reasonable time.
+MAX_JOBS = 256
+MAX_ORBIT_FRAMES = 3600
 
 
 def _add_process(sub: Any) -> None:
@@ -355,8 +382,11 @@ def _worker_init(cal_path: str, threads: int) -> None:
 
 def _process_one(
     src: str, dst: str, extra: dict[str, Any], save_views: bool, novel: Any = None
-) -> tuple[str, str | None]:
-    from .outputs import write_capture
+) -> tuple[str, str | None, str | None]:
+    """(source, error or None, warning or None) of one capture."""
+    import json
+
+    from .outputs import degenerate_message, write_capture
     from .pipeline import process_capture
 
     try:
@@ -369,10 +399,11 @@ def _process_one(
             superres=products.get("superres"),
             refocus=products.get("refocus") or (),
         )
-        write_capture(dst, res, cal, extra=extra, save_views=save_views, novel=novel)
-        return src, None
+        folder = write_capture(dst, res, cal, extra=extra, save_views=save_views, novel=novel)
+        info = json.loads((folder / "result.json").read_text())
+        return src, None, degenerate_message(info)
     except (LfcamError, OSError, ValueError) as exc:
-        return src, str(exc)
+        return src, str(exc), None
 
 
 def _novel_options(args: argparse.Namespace, cal: Any) -> Any:
@@ -382,8 +413,8 @@ def _novel_options(args: argparse.Namespace, cal: Any) -> Any:
     from .outputs import NovelViewOptions
     from .products.geometry import parse_pose
 
-    if args.orbit < 0:
-        raise InputError(f"--orbit: must be >= 0, got {args.orbit}")
+    if not 0 <= args.orbit <= MAX_ORBIT_FRAMES:
+        raise InputError(f"--orbit: expected 0 to {MAX_ORBIT_FRAMES} frames, got {args.orbit}")
     pose = None
     if args.novel_view is not None:
         try:
@@ -402,10 +433,13 @@ def _cmd_process(args: argparse.Namespace) -> int:
     from .calibration import Calibration
     from .io import file_hash
 
-    if args.jobs < 1:
-        raise InputError(f"--jobs: must be >= 1, got {args.jobs}")
+    if not 1 <= args.jobs <= MAX_JOBS:
+        raise InputError(f"--jobs: expected 1 to {MAX_JOBS}, got {args.jobs}")
     if args.superres is not None and not (1 <= args.superres <= 4):
         raise InputError(f"--superres: expected a factor from 1 to 4, got {args.superres}")
+    _check_output_folder(args.output, "-o")
+    if args.refocus and not all(math.isfinite(z) and z > 0 for z in args.refocus):
+        raise InputError(f"--refocus: expected finite distances > 0 m, got {list(args.refocus)}")
     cal = Calibration.load(args.calibration)
     if args.refocus and cal.metric:
         bad = [z for z in args.refocus if not z > cal.z_c]
@@ -429,6 +463,7 @@ def _cmd_process(args: argparse.Namespace) -> int:
     if args.superres is not None or args.refocus:
         extra["products"] = {"superres": args.superres, "refocus": list(args.refocus or [])}
     failures: list[tuple[str, str]] = []
+    warnings: list[tuple[str, str]] = []
     t0 = time.perf_counter()
     from tqdm import tqdm
 
@@ -436,9 +471,11 @@ def _cmd_process(args: argparse.Namespace) -> int:
     if jobs == 1:
         _WORKER.update(cal=cal, threads=threads)
         for s, d in todo:
-            src, err = _process_one(str(s), str(d), extra, args.save_views, novel)
+            src, err, warn = _process_one(str(s), str(d), extra, args.save_views, novel)
             if err:
                 failures.append((src, err))
+            if warn:
+                warnings.append((src, warn))
             bar.update(1)
     else:
         import multiprocessing as mp
@@ -458,9 +495,11 @@ def _cmd_process(args: argparse.Namespace) -> int:
                 for s, d in todo
             ]
             for f in futs:
-                src, err = f.result()
+                src, err, warn = f.result()
                 if err:
                     failures.append((src, err))
+                if warn:
+                    warnings.append((src, warn))
                 bar.update(1)
     bar.close()
     done = len(todo) - len(failures)
@@ -470,6 +509,8 @@ def _cmd_process(args: argparse.Namespace) -> int:
         + (f", {len(failures)} FAILED" if failures else "")
         + f" -> {args.output}"
     )
+    for src, warn in warnings:
+        print(f"lfcam process: warning: {src}: {warn}", file=sys.stderr)
     for src, err in failures:
         print(f"  failed: {src}: {err}", file=sys.stderr)
     return EXIT_PARTIAL if failures else EXIT_OK
@@ -523,7 +564,7 @@ def _add_depth_views(sub: Any) -> None:
 
 
 def _cmd_depth_views(args: argparse.Namespace) -> int:
-    from .outputs import write_lightfield
+    from .outputs import degenerate_message, write_lightfield
     from .sim import HCI_BORDER, LightField
 
     out: Path = args.output
@@ -545,6 +586,9 @@ def _cmd_depth_views(args: argparse.Namespace) -> int:
     )
     t3 = time.perf_counter()
     stats = info["statistics"]
+    warn = degenerate_message(info)
+    if warn:
+        print(f"lfcam depth-views: warning: {args.folder}: {warn}", file=sys.stderr)
     h, w = lf.image_shape
     print(
         f"depth of a {lf.grid_shape[0]}x{lf.grid_shape[1]} light field ({w} x {h} px,"
@@ -674,7 +718,7 @@ def build_parser() -> argparse.ArgumentParser:
     """The ``lfcam`` argument parser (all subcommands)."""
     from . import __version__
 
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="lfcam",
         description="Multiview light-field camera: simulate, calibrate, process.",
     )
@@ -692,8 +736,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``lfcam`` command line; returns the exit code."""
+    for stream in (sys.stdout, sys.stderr):
+        # A file name with bytes that are not UTF-8 is printed escaped, never a crash.
+        reconfigure = getattr(stream, "reconfigure", None)
+        if reconfigure is not None:
+            reconfigure(errors="backslashreplace")
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # argparse's usage errors (exit 2, naming the argument), --help
+        return exc.code if isinstance(exc.code, int) else EXIT_INPUT
     if not getattr(args, "func", None):
         parser.print_help()
         return EXIT_INPUT

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ._validate import check_instance
 from .calibration import Calibration
 from .io import CaptureMetadata, read_metadata, read_raw
 from .processing import DepthParams, DepthResult, estimate_depth, rectify
@@ -76,6 +77,7 @@ def process_capture(
         ``views`` (rectified), ``depth`` (a :class:`DepthResult`), ``timings``,
         ``metadata`` (the file's focal length, exposure, ISO, aperture, camera).
     """
+    check_instance(cal, Calibration, "cal")
     t0 = time.perf_counter()
     source = None
     metadata = CaptureMetadata()

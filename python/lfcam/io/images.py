@@ -15,6 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from .._validate import check_path
 from ..errors import InputError
 from .files import MAX_IMAGE_FILE_BYTES, read_file_bytes
 from .raw import RAW_EXTENSIONS, is_camera_raw, read_camera_raw
@@ -198,6 +199,7 @@ def read_image(path: str | os.PathLike[str]) -> np.ndarray:
     never opened by a decoder by name, and the size its header declares is checked
     before decoding: no file name or content can crash the process (docs/robustness.md).
     """
+    check_path(path, "path")
     p = Path(path)
     ext = p.suffix.lower()
     if ext not in IMAGE_EXTENSIONS:
