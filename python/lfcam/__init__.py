@@ -11,6 +11,7 @@ map"): :mod:`lfcam.io` and :mod:`lfcam.kernels` <- :mod:`lfcam.calibration` <-
 :mod:`lfcam.pipeline` <- :mod:`lfcam.outputs` <- :mod:`lfcam.cli`.
 """
 
+from lfcam._build import build_info
 from lfcam._lfcam import __version__, get_num_threads, set_num_threads
 from lfcam.calibration import Calibration, CalibrationParams, calibrate, make_pattern
 from lfcam.errors import CalibrationError, InputError, LfcamError, NumericalError
@@ -59,6 +60,7 @@ __all__ = [
     "TriangulationResult",
     "__version__",
     "all_in_focus",
+    "build_info",
     "calibrate",
     "crop_lenslets",
     "depth_from_views",

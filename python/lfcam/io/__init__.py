@@ -4,7 +4,7 @@ calibration file's HDF5 layout lives with the :class:`~lfcam.Calibration` type).
 
 from .atomic import atomic_folder, atomic_output, write_image_atomic, write_text_atomic
 from .checksum import file_hash
-from .display import colour_depth, encode_u8, encode_u16, rgb_u8
+from .display import colour_depth, encode_u8, encode_u16, rgb_u8, srgb_decode, srgb_encode
 from .formats import read_flo, read_pfm, write_pfm
 from .images import (
     BAYER_PATTERNS,
@@ -13,6 +13,7 @@ from .images import (
     is_image_file,
     read_image,
     read_raw,
+    read_tiff_description,
     to_float,
     write_image,
 )
@@ -33,7 +34,10 @@ __all__ = [
     "read_image",
     "read_pfm",
     "read_raw",
+    "read_tiff_description",
     "rgb_u8",
+    "srgb_decode",
+    "srgb_encode",
     "to_float",
     "write_image",
     "write_image_atomic",
