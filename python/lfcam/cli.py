@@ -118,7 +118,12 @@ def _add_simulate(sub: Any) -> None:
     )
     p.add_argument("--bit-depth", type=int, choices=(8, 16), help="raw bit depth")
     p.add_argument("--bayer", choices=("RGGB", "BGGR", "GRBG", "GBRG"), help="Bayer raw")
-    p.add_argument("--format", dest="raw_format", choices=("png", "tiff"), help="raw file format")
+    p.add_argument(
+        "--format",
+        dest="raw_format",
+        choices=("png", "tiff", "dng"),
+        help="raw file format (dng: camera raw, needs --bayer)",
+    )
     p.add_argument(
         "--scenes", metavar="S1,S2", help="comma-separated scenes: planes, spheres, layered, board"
     )
@@ -447,7 +452,7 @@ def _find_captures(path: Path, out_dir: Path) -> list[tuple[Path, Path]]:
             continue
         found.append((p, out_dir / p.relative_to(path).with_suffix("")))
     if not found:
-        raise InputError(f"{path}: no raw captures (PNG, TIFF or JPEG) found")
+        raise InputError(f"{path}: no raw captures (PNG, TIFF, JPEG or camera raw) found")
     return found
 
 

@@ -319,6 +319,7 @@ def write_capture(
             novel_info = {"novel_views": write_novel_views(tmp, result, cal, novel)}
         info = {
             "source": result.source,
+            "capture": result.metadata.to_dict(),
             "depth_units": z_unit,
             "xy_units": units,
             "points_frame": "front lens: X right, Y down, Z forward",
