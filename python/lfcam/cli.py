@@ -76,7 +76,12 @@ def _add_simulate(sub: Any) -> None:
     )
     p.add_argument("--bit-depth", type=int, choices=(8, 16), help="raw bit depth")
     p.add_argument("--bayer", choices=("RGGB", "BGGR", "GRBG", "GBRG"), help="Bayer raw")
-    p.add_argument("--format", dest="raw_format", choices=("png", "tiff"), help="raw file format")
+    p.add_argument(
+        "--format",
+        dest="raw_format",
+        choices=("png", "tiff", "dng"),
+        help="raw file format (dng: camera raw, needs --bayer)",
+    )
     p.add_argument("--scenes", help="comma-separated scenes: planes, spheres, layered, board")
     p.add_argument("--distances", type=_floats, help="board distances in metres, e.g. 0.8,1,1.25")
     p.add_argument("--captures", type=int, help="board captures per distance (default 5)")

@@ -98,7 +98,7 @@ def find_captures(
             if is_image_file(p) and out_res not in p.resolve().parents
         ]
         if not found:
-            raise InputError(f"{path}: no raw captures (PNG, TIFF or JPEG) found")
+            raise InputError(f"{path}: no raw captures (PNG, TIFF, JPEG or camera raw) found")
         tasks += [
             CaptureTask(str(p), str(out / p.relative_to(path).with_suffix(""))) for p in found
         ]

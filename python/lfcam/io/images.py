@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 
 from ..errors import InputError
+from .raw import RAW_EXTENSIONS, is_camera_raw, read_camera_raw
 
 __all__ = [
     "BAYER_PATTERNS",
@@ -33,7 +34,8 @@ BAYER_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
 _CV_BAYER = {"RGGB": "BG", "BGGR": "RG", "GRBG": "GB", "GBRG": "GR"}
 
 #: File extensions (lower case) lfcam reads as images: every folder scan uses this list.
-IMAGE_EXTENSIONS = (".png", ".tif", ".tiff", ".jpg", ".jpeg")
+#: Camera raw files (:data:`lfcam.io.raw.RAW_EXTENSIONS`) need the extra ``lfcam[raw]``.
+IMAGE_EXTENSIONS = (".png", ".tif", ".tiff", ".jpg", ".jpeg", *RAW_EXTENSIONS)
 #: File extensions lfcam writes images to.
 WRITABLE_EXTENSIONS = (".png", ".tif", ".tiff")
 
@@ -48,7 +50,7 @@ def is_image_file(path: Path) -> bool:
 
 
 def read_image(path: str | os.PathLike[str]) -> np.ndarray:
-    """Read a PNG, TIFF or JPEG image without changing its bit depth.
+    """Read a PNG, TIFF, JPEG or camera raw image without changing its bit depth.
 
     Parameters
     ----------
@@ -59,7 +61,8 @@ def read_image(path: str | os.PathLike[str]) -> np.ndarray:
     -------
     numpy.ndarray
         ``(H, W)`` for grey or Bayer, ``(H, W, 3)`` RGB otherwise (an alpha
-        channel is dropped); uint8, uint16 or float32 as stored.
+        channel is dropped); uint8, uint16 or float32 as stored. A camera raw file
+        comes back demosaiced, linear uint16 RGB (:func:`lfcam.io.raw.read_camera_raw`).
 
     Raises
     ------
@@ -68,10 +71,14 @@ def read_image(path: str | os.PathLike[str]) -> np.ndarray:
     """
     p = Path(path)
     if p.suffix.lower() not in IMAGE_EXTENSIONS:
-        raise InputError(f"{p}: unsupported image type {p.suffix!r} (use PNG, TIFF or JPEG)")
+        raise InputError(
+            f"{p}: unsupported image type {p.suffix!r} (use PNG, TIFF, JPEG or camera raw)"
+        )
     if not p.is_file():
         raise InputError(f"{p}: no such file")
-    if p.suffix.lower() in (".tif", ".tiff"):
+    if is_camera_raw(p):
+        img = read_camera_raw(p)[0]
+    elif p.suffix.lower() in (".tif", ".tiff"):
         import tifffile
 
         try:
@@ -141,9 +148,12 @@ def read_raw(path: str | os.PathLike[str], bayer: str | None = None) -> np.ndarr
     Parameters
     ----------
     path : path-like
-        PNG, TIFF (8/16-bit or float32) or JPEG.
+        PNG, TIFF (8/16-bit or float32), JPEG, or a camera raw file (DNG, CR2, NEF,
+        ARW, ...; needs ``pip install "lfcam[raw]"``).
     bayer : {'RGGB', 'BGGR', 'GRBG', 'GBRG'}, optional
-        The sensor's mosaic, for single-channel Bayer frames.
+        The sensor's mosaic, for single-channel Bayer frames. A camera raw file is
+        then read as its mosaic (which must be ``bayer``) and demosaiced here like any
+        Bayer frame; without ``bayer`` LibRaw demosaics it.
 
     Returns
     -------
@@ -154,7 +164,16 @@ def read_raw(path: str | os.PathLike[str], bayer: str | None = None) -> np.ndarr
     --------
     >>> raw = lfcam.read_raw("capture.png")                 # doctest: +SKIP
     >>> raw = lfcam.read_raw("capture.tiff", bayer="RGGB")  # doctest: +SKIP
+    >>> raw = lfcam.read_raw("capture.dng")                 # doctest: +SKIP
     """
+    if bayer is not None and is_camera_raw(path) and Path(path).is_file():
+        mosaic, cfa = read_camera_raw(path, mosaic=True)
+        if cfa != bayer:
+            raise InputError(
+                f"{path}: the file's colour filter mosaic is {cfa}, but the calibration"
+                f" says --bayer {bayer}"
+            )
+        return demosaic(mosaic, bayer, name=str(path))
     img = read_image(path)
     if bayer is not None:
         if img.ndim != 2:

@@ -13,15 +13,9 @@
 //! use_current_thread`]): it works on its own job instead of handing it over and
 //! sleeping until the job is done, as OpenMP's and OpenCV's calling threads do. A
 //! hand-over makes the scheduler wake every worker at once on whichever cores look
-//! idle, and the caller's own core idles: on the 2-core dev machine, a parallel
-//! kernel called right after single-threaded numpy work (so, the second core idle)
-//! took about as long as on one thread, with both workers time-sharing one core for
-//! the first ~8 ms (`perf sched timehist`). With the main thread taking part, in
-//! `benchmarks/run.py`'s harness (which alternates each lfcam call with a
-//! single-threaded reference call), 3 alternating processes each, full size, 2
-//! threads: shift-and-add 15.5-23.4 -> 10.7-13.7 ms, crop 5.2-7.1 -> 3.4-4.4 ms;
-//! rectify, remap, triangulate, super-resolve, rasterize unchanged within noise. The
-//! main thread joins one such
+//! idle, and the caller's own core idles: a short kernel called right after
+//! single-threaded work ran as if on one thread (measured: docs/tuning.md, "Threads
+//! and build"). The main thread joins one such
 //! pool for good (rayon cannot take it out again), so it is built only for 2 threads
 //! or more; if the thread count changes afterwards, the main thread's calls use the
 //! ordinary pool of the new size, and the first one again when the count returns to

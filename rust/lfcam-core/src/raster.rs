@@ -112,8 +112,7 @@ impl Vertex {
 
 /// [`Vertex::new`] of every vertex, in lfcam's pool when there are many.
 fn project_vertices(vertices: &[[f32; 3]]) -> Result<Vec<Vertex>> {
-    // (Collecting a parallel iterator instead, which skips this fill, measured 1.17x
-    // slower on 2 threads.)
+    // Faster than collecting a parallel iterator (docs/tuning.md, "Mesh and rendering").
     let mut out = vec![Vertex::UNUSABLE; vertices.len()];
     parallel::for_each_row_chunk(&mut out, 1, |first, out| {
         let src = vertices

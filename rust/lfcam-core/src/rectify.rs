@@ -523,8 +523,8 @@ impl<T: RawSample, const C: usize, const G: usize> Taps for Direct<'_, T, C, G> 
 /// footprints need (a band a little taller than the task, see [`Job::segment`]), so
 /// short tasks would recompute the rows shared with their neighbours: with 32 rows
 /// (about 29 raw rows at the usual scale) the band is some 15% taller than the rows it
-/// serves. Measured with benchmarks/run.py (full size, 2 threads): 16, 32 and 64 rows
-/// all take 114-122 ms, within the noise; 32 keeps hundreds of tasks to balance.
+/// serves; 16 to 64 rows time the same, and 32 keeps hundreds of tasks to balance
+/// (docs/tuning.md, "Rectification").
 const MIN_TASK_ROWS: usize = 32;
 
 /// The band of gained pixels is computed when its area is at most this many times the

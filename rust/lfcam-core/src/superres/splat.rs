@@ -862,9 +862,8 @@ fn splat_all(
     let band_rows = parallel::rows_per_task(fine_h, fine_w * (channels + 1) * 4, threads)
         .max(2 * radius + 1)
         // A sample whose kernel straddles two bands is splatted in both: bands of at
-        // least 16 kernel heights keep that under ~1/8. (8 kernel heights, a band's
-        // rows in L2: the benchmark's fusion 13.5 -> 12.3 ms at 16, the best of 8
-        // processes each; 32: the same as 16.)
+        // least 16 kernel heights keep that under ~1/8 (docs/tuning.md, "Super-resolution
+        // and refocus").
         .max(16 * (2 * radius + 1))
         .max(4);
     let bins = bin_samples(

@@ -18,9 +18,8 @@ type V = __m256;
 /// Float32 per register.
 const LANES: usize = 8;
 
-/// Registers per group: 2 independent chains (measured on the 11-view benchmark, in
-/// cache: 1 register 0.97 ms, 2 registers 0.79 ms, 4 registers 1.10 ms per 20 rows:
-/// with one the chains' latency shows, with four the spills).
+/// Registers per group: 2 independent chains (with one the chains' latency shows, with
+/// four the spills; docs/tuning.md, "Triangulation kernel").
 const K: usize = 2;
 
 /// `K` registers of 8 float32 lanes.

@@ -19,8 +19,8 @@ type V = __m512;
 /// Float32 per register.
 const LANES: usize = 16;
 
-/// Registers per group: 2 independent chains, as with AVX2 (measured on the 11-view
-/// benchmark, in cache: 1 register 0.60 ms, 2 registers 0.47 ms per 20 rows).
+/// Registers per group: 2 independent chains, as with AVX2 (docs/tuning.md,
+/// "Triangulation kernel").
 const K: usize = 2;
 
 /// `K` registers of 16 float32 lanes.

@@ -39,10 +39,9 @@
 //! whole segment, view by view, into a buffer (each view's flows and weights of the
 //! segment are one sequential read, 12 kB for 1024 pixels), then the estimator group
 //! by group from the buffer (193 kB for 11 views with AVX2: in L2), during which
-//! [`Prefetcher`] fetches the next segment's flows and weights. Measured against
-//! 64-pixel chunks gathered from all views with each chunk prefetched two ahead (AVX2,
-//! CPU time, full-size benchmark, 1 thread, medians of 12 rounds): 45.6 ms; segments
-//! without prefetching, 51.8 ms; segments with, 43.9 ms.
+//! [`Prefetcher`] fetches the next segment's flows and weights. That beats both
+//! segments without prefetching and small chunks gathered from all views
+//! (docs/tuning.md, "Triangulation kernel").
 //!
 //! # Safety
 //! The functions of the estimator are `#[target_feature]`: calling them from code
