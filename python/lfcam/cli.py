@@ -76,7 +76,12 @@ def _add_simulate(sub: Any) -> None:
     )
     p.add_argument("--bit-depth", type=int, choices=(8, 16), help="raw bit depth")
     p.add_argument("--bayer", choices=("RGGB", "BGGR", "GRBG", "GBRG"), help="Bayer raw")
-    p.add_argument("--format", dest="raw_format", choices=("png", "tiff"), help="raw file format")
+    p.add_argument(
+        "--format",
+        dest="raw_format",
+        choices=("png", "tiff", "dng"),
+        help="raw file format (dng: camera raw, needs --bayer)",
+    )
     p.add_argument("--scenes", help="comma-separated scenes: planes, spheres, layered, board")
     p.add_argument("--distances", type=_floats, help="board distances in metres, e.g. 0.8,1,1.25")
     p.add_argument("--captures", type=int, help="board captures per distance (default 5)")
@@ -329,7 +334,7 @@ def _find_captures(path: Path, out_dir: Path) -> list[tuple[Path, Path]]:
             continue
         found.append((p, out_dir / p.relative_to(path).with_suffix("")))
     if not found:
-        raise InputError(f"{path}: no raw captures (PNG, TIFF or JPEG) found")
+        raise InputError(f"{path}: no raw captures (PNG, TIFF, JPEG or camera raw) found")
     return found
 
 
@@ -602,9 +607,9 @@ def _add_demo(sub: Any) -> None:
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     import numpy as np
-    import tifffile
 
     from .calibration import run_calibration
+    from .io import read_image
     from .outputs import write_capture
     from .pipeline import process_capture
     from .sim import SimConfig, depth_accuracy, simulate
@@ -630,7 +635,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
             bar.set_postfix_str(f"depth of {name}")
             res = process_capture(raw, cal)
             folder = write_capture(out / "results" / name, res, cal)
-            truth = tifffile.imread(sim.truth_dir / name / "depth.tiff")
+            truth = read_image(sim.truth_dir / name / "depth.tiff")
             z = res.depth.depth
             assert z is not None
             med, bad, cov = depth_accuracy(z, truth, cal.masks[cal.reference])

@@ -177,6 +177,7 @@ def write_capture(
             novel_info = {"novel_views": write_novel_views(tmp, result, cal, novel)}
         info = {
             "source": result.source,
+            "capture": result.metadata.to_dict(),
             "depth_units": "m" if d.depth is not None else "relative (t = s Z_c / Z_b)",
             "xy_units": units,
             "rect_shape": list(cal.rect_shape),

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from .calibration import Calibration
-from .io import read_raw
+from .io import CaptureMetadata, read_metadata, read_raw
 from .processing import DepthParams, DepthResult, estimate_depth, rectify
 from .products import refocus as refocus_at
 from .products import super_resolve
@@ -36,6 +36,8 @@ class CaptureResult:
     superres: np.ndarray | None = None
     #: Refocused images by focus distance in metres (``refocus=(...)``).
     refocused: dict[float, np.ndarray] = field(default_factory=dict)
+    #: What the capture's file says about how it was taken (EXIF; empty for arrays).
+    metadata: CaptureMetadata = field(default_factory=CaptureMetadata)
 
 
 def process_capture(
@@ -53,7 +55,7 @@ def process_capture(
     Parameters
     ----------
     raw_or_path : array or path
-        The raw frame, or its file (PNG, TIFF, JPEG).
+        The raw frame, or its file (PNG, TIFF, JPEG, camera raw).
     cal : Calibration
         The camera.
     interp : str
@@ -71,13 +73,16 @@ def process_capture(
     Returns
     -------
     CaptureResult
-        ``views`` (rectified), ``depth`` (a :class:`DepthResult`), ``timings``.
+        ``views`` (rectified), ``depth`` (a :class:`DepthResult`), ``timings``,
+        ``metadata`` (the file's focal length, exposure, ISO, aperture, camera).
     """
     t0 = time.perf_counter()
     source = None
+    metadata = CaptureMetadata()
     if isinstance(raw_or_path, (str, os.PathLike)):
         source = str(raw_or_path)
         raw = read_raw(Path(raw_or_path), cal.bayer)
+        metadata = read_metadata(Path(raw_or_path))
     else:
         raw = np.asarray(raw_or_path)
     t1 = time.perf_counter()
@@ -86,7 +91,7 @@ def process_capture(
     res = estimate_depth(views, cal, depth, threads=threads)
     t3 = time.perf_counter()
     timings = {"read": t1 - t0, "rectify": t2 - t1, **res.timings}
-    out = CaptureResult(views, res, source, timings)
+    out = CaptureResult(views, res, source, timings, metadata=metadata)
     if superres is not None or refocus:
         if superres is not None:
             out.superres = super_resolve(raw, cal, res, superres)

@@ -72,7 +72,7 @@ def find_inputs(cal_dir: str | os.PathLike[str]) -> CalibrationInputs:
         raise InputError(f"{wdir}: no white-target folder")
     white = _images(wdir)
     if not white:
-        raise InputError(f"{wdir}: no images (PNG, TIFF or JPEG) of the white target")
+        raise InputError(f"{wdir}: no images (PNG, TIFF, JPEG or camera raw) of the white target")
     boards: dict[float, list[Path]] = {}
     for d in sorted(root.iterdir()):
         if not d.is_dir() or not d.name.startswith("board"):

@@ -117,7 +117,8 @@ class SimConfig:
         Distance of the test board scene (``board``), metres; default 1.12 m,
         not a calibration distance.
     raw_format : str
-        ``png`` or ``tiff``.
+        ``png``, ``tiff`` or ``dng`` (camera raw: a Bayer mosaic with a black level
+        and the EXIF focal length, exposure, ISO and aperture; needs ``bayer``).
     seed : int
         Everything random derives from this seed.
     """
@@ -176,8 +177,10 @@ class SimConfig:
             raise bad("bit_depth", f"must be 8 or 16, got {self.bit_depth!r}")
         if self.bayer is not None and self.bayer not in BAYER_PATTERNS:
             raise bad("bayer", f"must be one of {BAYER_PATTERNS} or None, got {self.bayer!r}")
-        if self.raw_format not in ("png", "tiff"):
-            raise bad("raw_format", f"must be 'png' or 'tiff', got {self.raw_format!r}")
+        if self.raw_format not in ("png", "tiff", "dng"):
+            raise bad("raw_format", f"must be 'png', 'tiff' or 'dng', got {self.raw_format!r}")
+        if self.raw_format == "dng" and self.bayer is None:
+            raise bad("raw_format", "a DNG holds a Bayer mosaic: give bayer (e.g. RGGB)")
         if not (1 <= self.supersample <= 8):
             raise bad("supersample", f"must be in 1..8, got {self.supersample!r}")
         if len(self.distances) < 1 or any(not (z > 2 * self.z_c) for z in self.distances):

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
-from ..io import atomic_folder, write_image
+from ..io import CaptureMetadata, atomic_folder, write_dng, write_image
 from .camera import SimConfig, SimulatedCamera
 from .scenes import (
     Scene,
@@ -58,8 +58,39 @@ class SimulationResult:
     timings: dict[str, float]
 
 
-def _write_raw(path: Path, img: np.ndarray) -> None:
-    write_image(path, img, compression=1)
+#: Black level of the simulator's 8-bit DNGs (stored values are the sensor's plus this;
+#: a 16-bit sensor's DNG has none, as its values fill the 16 bits).
+DNG_BLACK_8BIT = 64
+
+
+def _write_raw(path: Path, img: np.ndarray, cam: SimulatedCamera) -> None:
+    cfg = cam.cfg
+    if cfg.raw_format != "dng":
+        write_image(path, img, compression=1)
+        return
+    assert cfg.bayer is not None
+    black = DNG_BLACK_8BIT if img.dtype == np.uint8 else 0
+    write_dng(
+        path,
+        img.astype(np.uint16) + np.uint16(black),
+        cfg.bayer,
+        black_level=black,
+        white_level=black + int(np.iinfo(img.dtype).max),
+        metadata=capture_metadata(cam),
+    )
+
+
+def capture_metadata(cam: SimulatedCamera) -> CaptureMetadata:
+    """The EXIF metadata of the simulator's camera raw captures."""
+    f = cam.cfg.focal_length
+    return CaptureMetadata(
+        focal_length_mm=round(f * 1e3, 3),
+        exposure_s=0.01,
+        iso=100.0,
+        f_number=round(f / (2 * cam.aperture_radius), 2),
+        make="lfcam",
+        model=f"simulated {cam.R}x{cam.C} light-field camera",
+    )
 
 
 def simulate(
@@ -79,7 +110,7 @@ def simulate(
         calibration/camera.toml               grid, reference view, pattern pitch
         calibration/white/white_NN.png        white-target captures
         calibration/board_<d>m/board_NN.png   pattern captures per distance
-        captures/<scene>.png                  raw scene captures
+        captures/<scene>.png                  raw scene captures (.tiff, .dng: raw_format)
         truth/camera.npz                      crops, centres, warps, masks, offsets,
                                               z_b, z_c, b, l, f, D, g, ...
         truth/<scene>/depth.tiff              depth (metres) in the reference
@@ -135,7 +166,7 @@ def simulate(
         cam = SimulatedCamera(cfg)
         renderer = _Renderer(cam)
         rng = np.random.default_rng(np.random.SeedSequence([0x401E, cfg.seed & 0xFFFFFFFF]))
-        ext = "png" if cfg.raw_format == "png" else "tiff"
+        ext = cfg.raw_format
         cal = tmp / "calibration"
         (cal / "white").mkdir(parents=True)
         write_image(cal / "pattern.png", cam.pattern)
@@ -153,7 +184,7 @@ def simulate(
         say("white captures")
         clean = renderer.render(Scene("white", white=True))
         for k in range(cfg.white_captures):
-            _write_raw(cal / "white" / f"white_{k:02d}.{ext}", add_noise(clean, cfg, rng))
+            _write_raw(cal / "white" / f"white_{k:02d}.{ext}", add_noise(clean, cfg, rng), cam)
         timings["white"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
@@ -163,7 +194,7 @@ def simulate(
             folder.mkdir()
             clean = renderer.render(Scene("board", [_board_plane(cam, z)]))
             for k in range(cfg.captures_per_distance):
-                _write_raw(folder / f"board_{k:02d}.{ext}", add_noise(clean, cfg, rng))
+                _write_raw(folder / f"board_{k:02d}.{ext}", add_noise(clean, cfg, rng), cam)
         timings["boards"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
@@ -174,7 +205,7 @@ def simulate(
             say(f"scene {name}")
             clean = renderer.render(scene)
             p = tmp / "captures" / f"{name}.{ext}"
-            _write_raw(p, add_noise(clean, cfg, rng))
+            _write_raw(p, add_noise(clean, cfg, rng), cam)
             captures[name] = out / "captures" / p.name
         timings["scenes"] = time.perf_counter() - t0
 
