@@ -14,7 +14,13 @@ map"): :mod:`lfcam.io` and :mod:`lfcam.kernels` <- :mod:`lfcam.calibration` <-
 from lfcam._lfcam import __version__, get_num_threads, set_num_threads
 from lfcam.batch import BatchSummary, ProcessOptions, process_folder
 from lfcam.calibration import Calibration, CalibrationParams, calibrate, make_pattern
-from lfcam.errors import CalibrationError, InputError, LfcamError, NumericalError
+from lfcam.errors import (
+    CalibrationError,
+    InputError,
+    LfcamError,
+    LfcamWarning,
+    NumericalError,
+)
 from lfcam.io import read_image, read_pfm, read_raw, write_pfm
 from lfcam.kernels import crop_lenslets, nan_median, remap_bilinear
 from lfcam.pipeline import CaptureResult, process_capture
@@ -50,6 +56,7 @@ __all__ = [
     "DepthResult",
     "InputError",
     "LfcamError",
+    "LfcamWarning",
     "LightField",
     "Mesh",
     "NumericalError",

@@ -525,9 +525,9 @@ def _add_demo(sub: Any) -> None:
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     import numpy as np
-    import tifffile
 
     from .calibration import run_calibration
+    from .io import read_image
     from .outputs import write_capture
     from .pipeline import process_capture
     from .sim import SimConfig, depth_accuracy, simulate
@@ -553,7 +553,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
             bar.set_postfix_str(f"depth of {name}")
             res = process_capture(raw, cal)
             folder = write_capture(out / "results" / name, res, cal)
-            truth = tifffile.imread(sim.truth_dir / name / "depth.tiff")
+            truth = read_image(sim.truth_dir / name / "depth.tiff")
             z = res.depth.depth
             assert z is not None
             med, bad, cov = depth_accuracy(z, truth, cal.masks[cal.reference])
