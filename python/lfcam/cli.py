@@ -435,69 +435,6 @@ def _add_process(sub: Any) -> None:
     p.set_defaults(func=_cmd_process)
 
 
-def _find_captures(path: Path, out_dir: Path) -> list[tuple[Path, Path]]:
-    """(capture, its output folder) pairs, sorted."""
-    from .io import is_image_file
-
-    if path.is_file():
-        return [(path, out_dir / path.stem)]
-    if not path.is_dir():
-        raise InputError(f"{path}: no such file or folder")
-    out_res = out_dir.resolve()
-    found = []
-    for p in sorted(path.rglob("*")):
-        if not is_image_file(p):
-            continue
-        if out_res in p.resolve().parents:
-            continue
-        found.append((p, out_dir / p.relative_to(path).with_suffix("")))
-    if not found:
-        raise InputError(f"{path}: no raw captures (PNG, TIFF, JPEG or camera raw) found")
-    return found
-
-
-_WORKER: dict[str, Any] = {}
-
-
-def _worker_init(cal_path: str, threads: int) -> None:
-    import cv2
-
-    from . import set_num_threads
-    from .calibration import Calibration
-
-    set_num_threads(threads)
-    cv2.setNumThreads(threads)
-    _WORKER["cal"] = Calibration.load(cal_path)
-    _WORKER["threads"] = threads
-
-
-def _process_one(
-    src: str,
-    dst: str,
-    extra: dict[str, Any],
-    save_views: bool,
-    novel: Any = None,
-    frame: str = "valid",
-) -> tuple[str, str | None]:
-    from .outputs import write_capture
-    from .pipeline import process_capture
-
-    try:
-        cal = _WORKER["cal"]
-        products = extra.get("products", {})
-        res = process_capture(
-            src,
-            cal,
-            threads=_WORKER["threads"],
-            superres=products.get("superres"),
-            refocus=products.get("refocus") or (),
-        )
-        write_capture(dst, res, cal, extra=extra, save_views=save_views, novel=novel, frame=frame)
-        return src, None
-    except (LfcamError, OSError, ValueError) as exc:
-        return src, str(exc)
-
-
 def _novel_options(args: argparse.Namespace, cal: Any) -> Any:
     """--mesh / --novel-view / --orbit as :class:`lfcam.outputs.NovelViewOptions`."""
     import math
@@ -522,8 +459,8 @@ def _novel_options(args: argparse.Namespace, cal: Any) -> Any:
 
 
 def _cmd_process(args: argparse.Namespace) -> int:
+    from .batch import ProcessOptions, process_folder
     from .calibration import Calibration
-    from .io import file_hash
 
     if args.jobs < 1:
         raise InputError(f"--jobs: must be >= 1, got {args.jobs}")
@@ -536,58 +473,37 @@ def _cmd_process(args: argparse.Namespace) -> int:
             raise InputError(f"--refocus: distances must be beyond Z_c = {cal.z_c:.3f} m: {bad}")
     elif args.refocus:
         raise InputError("--refocus: the calibration is relative (no Z_c): no metric focus")
-    novel = _novel_options(args, cal)
-    pairs = _find_captures(args.input, args.output)
-    todo = [(s, d) for s, d in pairs if args.overwrite or not (d / "result.json").is_file()]
-    skipped = len(pairs) - len(todo)
-    args.output.mkdir(parents=True, exist_ok=True)
-    cores = os.cpu_count() or 1
-    jobs = min(args.jobs, max(1, len(todo)))
-    threads = max(1, cores // jobs)
-    extra = {
-        "calibration": str(args.calibration),
-        "calibration_sha256": file_hash(args.calibration),
-        "parameters": {"interp": "bilinear", "jobs": jobs, "threads": threads},
-    }
-    if args.superres is not None or args.refocus:
-        extra["products"] = {"superres": args.superres, "refocus": list(args.refocus or [])}
-    failures: list[tuple[str, str]] = []
-    t0 = time.perf_counter()
-    bar = _progress(args, len(todo), "process", unit="capture")
+    options = ProcessOptions(
+        save_views=args.save_views,
+        superres=args.superres,
+        refocus=tuple(args.refocus or ()),
+        novel=_novel_options(args, cal),
+        overwrite=args.overwrite,
+        frame=args.frame,
+    )
+    bars: list[Progress] = []
 
-    def record(src: str, err: str | None) -> None:
-        if err:
-            failures.append((src, err))
-        bar.step(f"{src}{' FAILED' if err else ''}")
+    def progress(outcome: Any, finished: int, total: int) -> None:
+        if not bars:  # the total is known once the folder is scanned
+            bars.append(_progress(args, total, "process", unit="capture"))
+        bars[0].step(f"{outcome.source} {outcome.status}")
 
-    if jobs == 1:
-        _WORKER.update(cal=cal, threads=threads)
-        for s, d in todo:
-            record(*_process_one(str(s), str(d), extra, args.save_views, novel, args.frame))
-    else:
-        import multiprocessing as mp
-        from concurrent.futures import ProcessPoolExecutor
-
-        # "spawn": a forked child inherits OpenCV's and BLAS's thread pools in an
-        # undefined state and can hang; fresh interpreters are safe everywhere.
-        ctx = mp.get_context("spawn")
-        with ProcessPoolExecutor(
-            jobs,
-            mp_context=ctx,
-            initializer=_worker_init,
-            initargs=(str(args.calibration), threads),
-        ) as ex:
-            futs = [
-                ex.submit(_process_one, str(s), str(d), extra, args.save_views, novel, args.frame)
-                for s, d in todo
-            ]
-            for f in futs:
-                record(*f.result())
-    bar.close()
-    done = len(todo) - len(failures)
+    try:
+        summary = process_folder(
+            args.input,
+            args.calibration,
+            args.output,
+            jobs=args.jobs,
+            options=options,
+            progress=progress,
+        )
+    finally:
+        for bar in bars:
+            bar.close()
+    done, skipped, failures = summary.done, summary.skipped, summary.failed
     print(
-        f"processed {done} capture(s) in {time.perf_counter() - t0:.1f} s"
-        + (f", skipped {skipped} complete" if skipped else "")
+        f"processed {len(done)} capture(s) in {summary.seconds:.1f} s"
+        + (f", skipped {len(skipped)} complete" if skipped else "")
         + (f", {len(failures)} FAILED" if failures else "")
         + f" -> {args.output}"
     )
@@ -760,10 +676,9 @@ def _default_demo_dir() -> Path:
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     import numpy as np
-    import tifffile
 
     from .calibration import run_calibration
-    from .io import file_hash
+    from .io import file_hash, read_image
     from .outputs import write_capture
     from .pipeline import process_capture
     from .sim import SimConfig, depth_accuracy, simulate
@@ -796,7 +711,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         for name, raw in sim.captures.items():
             res = process_capture(raw, cal)
             folder = write_capture(out / "results" / name, res, cal, extra=cal_info)
-            truth = tifffile.imread(sim.truth_dir / name / "depth.tiff")
+            truth = read_image(sim.truth_dir / name / "depth.tiff")
             z = res.depth.depth
             assert z is not None
             med, bad, cov = depth_accuracy(z, truth, cal.masks[cal.reference])

@@ -7,6 +7,7 @@ float32 goes to TIFF.
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import struct
@@ -19,11 +20,15 @@ import cv2
 import numpy as np
 
 from ..errors import InputError
+from .files import MAX_IMAGE_FILE_BYTES, read_file_bytes
 from .raw import RAW_EXTENSIONS, is_camera_raw, read_camera_raw
 
 __all__ = [
     "BAYER_PATTERNS",
     "IMAGE_EXTENSIONS",
+    "MAX_IMAGE_FILE_BYTES",
+    "MAX_IMAGE_PIXELS",
+    "MAX_IMAGE_SIDE",
     "WRITABLE_EXTENSIONS",
     "demosaic",
     "is_image_file",
@@ -44,6 +49,122 @@ _CV_BAYER = {"RGGB": "BG", "BGGR": "RG", "GRBG": "GB", "GBRG": "GR"}
 IMAGE_EXTENSIONS = (".png", ".tif", ".tiff", ".jpg", ".jpeg", *RAW_EXTENSIONS)
 #: File extensions lfcam writes images to.
 WRITABLE_EXTENSIONS = (".png", ".tif", ".tiff")
+
+#: Largest width or height of an image lfcam reads (px); checked in the file's header
+#: before anything is decoded.
+MAX_IMAGE_SIDE = 65_535
+#: Largest number of pixels (width x height) of an image lfcam reads: 2**28, about
+#: 268 megapixels (1 GiB per float32 channel), beyond any light-field sensor.
+MAX_IMAGE_PIXELS = 1 << 28
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+# PNG colour type -> channels (0 grey, 2 RGB, 3 palette, 4 grey + alpha, 6 RGBA).
+_PNG_CHANNELS = {0: 1, 2: 3, 3: 3, 4: 2, 6: 4}
+# JPEG start-of-frame markers: SOF0..SOF15 except DHT (C4), JPG (C8) and DAC (CC).
+_JPEG_SOF = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
+
+
+def _png_header(data: bytes, where: str) -> tuple[int, int, int]:
+    """(width, height, channels) from a PNG's IHDR chunk."""
+    if len(data) < 33 or data[:8] != _PNG_SIGNATURE or data[12:16] != b"IHDR":
+        raise InputError(f"{where}: not a readable PNG (no PNG header)")
+    width, height = struct.unpack(">II", data[16:24])
+    channels = _PNG_CHANNELS.get(data[25])
+    if channels is None or data[24] not in (1, 2, 4, 8, 16):
+        raise InputError(
+            f"{where}: not a readable PNG (bad IHDR: bit depth {data[24]}, colour type {data[25]})"
+        )
+    return width, height, channels
+
+
+def _jpeg_header(data: bytes, where: str) -> tuple[int, int, int]:
+    """(width, height, channels) from a JPEG's start-of-frame segment."""
+    if data[:2] != b"\xff\xd8":
+        raise InputError(f"{where}: not a readable JPEG (no JPEG header)")
+    i = 2
+    while i + 4 <= len(data):
+        if data[i] != 0xFF:
+            break
+        marker = data[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        if marker in (0x01, *range(0xD0, 0xD8)):  # markers without a length
+            i += 2
+            continue
+        (length,) = struct.unpack(">H", data[i + 2 : i + 4])
+        if length < 2:
+            break
+        if marker in _JPEG_SOF:
+            if i + 10 > len(data):
+                break
+            height, width = struct.unpack(">HH", data[i + 5 : i + 9])
+            return width, height, data[i + 9]
+        if marker == 0xDA:  # start of scan before any frame header
+            break
+        i += 2 + length
+    raise InputError(f"{where}: not a readable JPEG (no frame header)")
+
+
+def _check_size(width: int, height: int, channels: int, where: str) -> None:
+    if width < 1 or height < 1:
+        raise InputError(f"{where}: the header declares an empty {width} x {height} image")
+    if channels not in (1, 2, 3, 4):
+        raise InputError(f"{where}: the header declares {channels} channels (expected 1 to 4)")
+    if max(width, height) > MAX_IMAGE_SIDE or width * height > MAX_IMAGE_PIXELS:
+        raise InputError(
+            f"{where}: the header declares a {width} x {height} image, larger than lfcam "
+            f"reads ({MAX_IMAGE_SIDE} px a side, {MAX_IMAGE_PIXELS} px in all)"
+        )
+
+
+def _decode_tiff(data: bytes, where: str) -> np.ndarray:
+    import tifffile
+
+    try:
+        with tifffile.TiffFile(io.BytesIO(data)) as tif:
+            if not tif.series:
+                raise InputError(f"{where}: not a readable TIFF (no image in it)")
+            series = tif.series[0]
+            shape = tuple(int(s) for s in series.shape)
+            if len(shape) == 2:
+                shape = (*shape, 1)
+            if len(shape) != 3 or shape[2] > 4:
+                raise InputError(
+                    f"{where}: expected a grey or RGB image, the TIFF holds shape {series.shape}"
+                )
+            if series.dtype not in (np.uint8, np.uint16, np.float32):
+                raise InputError(
+                    f"{where}: unsupported pixel type {series.dtype} (use 8/16-bit or float32)"
+                )
+            _check_size(shape[1], shape[0], shape[2], where)
+            img = series.asarray()
+    except InputError:
+        raise
+    except MemoryError:
+        raise InputError(f"{where}: not enough memory to decode this TIFF") from None
+    except Exception as exc:  # tifffile and its codecs raise many types on bad data
+        raise InputError(f"{where}: not a readable TIFF ({type(exc).__name__}: {exc})") from None
+    return np.asarray(img)
+
+
+def _decode_cv2(data: bytes, ext: str, where: str) -> np.ndarray:
+    kind = "PNG" if ext == ".png" else "JPEG"
+    width, height, channels = (_png_header if ext == ".png" else _jpeg_header)(data, where)
+    _check_size(width, height, channels, where)
+    try:
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    except cv2.error as exc:
+        raise InputError(f"{where}: not a readable {kind} ({str(exc).strip()})") from None
+    if img is None:
+        raise InputError(f"{where}: not a readable {kind} (corrupt or truncated?)")
+    if img.shape[:2] != (height, width):
+        raise InputError(
+            f"{where}: decoded {img.shape[1]} x {img.shape[0]} px, but the header says "
+            f"{width} x {height}"
+        )
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGB if img.shape[2] == 4 else cv2.COLOR_BGR2RGB)
+    return img
 
 
 def is_image_file(path: Path) -> bool:
@@ -73,30 +194,29 @@ def read_image(path: str | os.PathLike[str]) -> np.ndarray:
     Raises
     ------
     lfcam.InputError
-        If the file is missing, has an unsupported extension or cannot be decoded.
+        If the file is missing, has an unsupported extension, declares a size beyond
+        :data:`MAX_IMAGE_SIDE` / :data:`MAX_IMAGE_PIXELS`, or cannot be decoded.
+
+    Notes
+    -----
+    The file is read by Python and decoded from memory (``cv2.imdecode``, tifffile),
+    never opened by a decoder by name, and the size its header declares is checked
+    before decoding: no file name or content can crash the process (docs/robustness.md).
     """
     p = Path(path)
-    if p.suffix.lower() not in IMAGE_EXTENSIONS:
+    ext = p.suffix.lower()
+    if ext not in IMAGE_EXTENSIONS:
         raise InputError(
             f"{p}: unsupported image type {p.suffix!r} (use PNG, TIFF, JPEG or camera raw)"
         )
-    if not p.is_file():
-        raise InputError(f"{p}: no such file")
     if is_camera_raw(p):
         img = read_camera_raw(p)[0]
-    elif p.suffix.lower() in (".tif", ".tiff"):
-        import tifffile
-
-        try:
-            img = tifffile.imread(p)
-        except Exception as exc:
-            raise InputError(f"{p}: not a readable TIFF ({exc})") from None
+    elif ext in (".tif", ".tiff"):
+        img = _decode_tiff(read_file_bytes(p, MAX_IMAGE_FILE_BYTES), str(p))
+        if img.ndim == 3 and img.shape[2] == 1:
+            img = img[..., 0]
     else:
-        img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
-        if img is None:
-            raise InputError(f"{p}: not a readable image (corrupt or truncated?)")
-        if img.ndim == 3:
-            img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGB if img.shape[2] == 4 else cv2.COLOR_BGR2RGB)
+        img = _decode_cv2(read_file_bytes(p, MAX_IMAGE_FILE_BYTES), ext, str(p))
     if img.ndim == 3 and img.shape[2] == 4:
         img = img[..., :3]
     if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] != 3):

@@ -8,6 +8,7 @@ black level subtracted, no gamma, no automatic brightness and no camera white ba
 
 from __future__ import annotations
 
+import io
 import math
 import os
 from dataclasses import asdict, dataclass
@@ -17,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
+from .files import MAX_IMAGE_FILE_BYTES, read_file_bytes
 
 __all__ = [
     "RAW_EXTENSIONS",
@@ -71,10 +73,10 @@ def _rawpy(path: Path) -> Any:
 
 def _open(path: Path) -> Any:
     rawpy = _rawpy(path)
-    if not path.is_file():
-        raise InputError(f"{path}: no such file")
+    # LibRaw decodes the bytes read by Python: any byte in the name works.
+    data = read_file_bytes(path, MAX_IMAGE_FILE_BYTES)
     try:
-        return rawpy.imread(str(path))
+        return rawpy.imread(io.BytesIO(data))
     except (rawpy.LibRawError, OSError, ValueError) as exc:
         raise InputError(f"{path}: not a readable camera raw file ({exc})") from None
 

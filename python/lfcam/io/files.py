@@ -1,0 +1,46 @@
+"""Reading an untrusted file's bytes: by Python (any byte in its name works), only a
+regular file, within a size limit. Decoders then work on memory, never on a path."""
+
+from __future__ import annotations
+
+import os
+import stat
+from pathlib import Path
+
+from ..errors import InputError
+
+__all__ = ["MAX_IMAGE_FILE_BYTES", "read_file_bytes"]
+
+#: Largest image file lfcam reads into memory, bytes (a 16-bit RGB TIFF at
+#: ``MAX_IMAGE_PIXELS`` is 1.5 GiB).
+MAX_IMAGE_FILE_BYTES = 1 << 31
+
+
+def read_file_bytes(path: str | os.PathLike[str], limit: int) -> bytes:
+    """A file's bytes, or an :class:`~lfcam.InputError` naming it.
+
+    Raises
+    ------
+    lfcam.InputError
+        If the file is missing, a folder, not a regular file (a FIFO or device would
+        block or never end), larger than ``limit`` bytes, or unreadable.
+    """
+    p = Path(path)
+    try:
+        # O_NONBLOCK: opening a FIFO must not wait for a writer (refused just below).
+        fd = os.open(p, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+        with os.fdopen(fd, "rb") as fh:
+            st = os.fstat(fh.fileno())
+            if stat.S_ISDIR(st.st_mode):
+                raise InputError(f"{p}: is a folder, not a file")
+            if not stat.S_ISREG(st.st_mode):
+                raise InputError(f"{p}: not a regular file")
+            if st.st_size > limit:
+                raise InputError(f"{p}: {st.st_size} bytes, larger than lfcam reads ({limit})")
+            return fh.read(limit + 1)
+    except FileNotFoundError:
+        raise InputError(f"{p}: no such file") from None
+    except IsADirectoryError:
+        raise InputError(f"{p}: is a folder, not a file") from None
+    except OSError as e:
+        raise InputError(f"{p}: cannot read ({e.strerror or e})") from None

@@ -1,0 +1,366 @@
+"""Batches that survive: bad captures, dead workers, killed runs, concurrent runs.
+
+A small simulated camera (2 x 3 views of 200 x 150 px, about 0.5 s per capture) keeps
+these fast. "Bit-identical" compares every output file byte for byte, and
+``result.json`` without its timings and its jobs/threads parameters.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+import lfcam
+from lfcam.batch.pool import WorkerDied, run_pool
+from lfcam.calibration.calibrate import run_calibration
+from lfcam.errors import LfcamError
+from lfcam.io.lock import LockBusy, lock_path, path_lock, remove_stale
+from lfcam.sim import SimConfig
+
+LINUX = sys.platform.startswith("linux") and os.path.isdir("/proc/self")
+NAMES = ["board", "layered", "planes", "spheres", "sub/planes2", "sub/spheres2"]
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory) -> dict[str, Path]:
+    """A small camera's calibration, a folder of six captures and its reference output
+    (an uninterrupted ``--jobs 1`` run)."""
+    root = tmp_path_factory.mktemp("batch")
+    cfg = SimConfig(
+        view_size=(200, 150),
+        grid=(2, 3),
+        captures_per_distance=2,
+        scenes=("planes", "spheres", "layered", "board"),
+        seed=5,
+    )
+    sim = lfcam.simulate(root / "sim", cfg, truth=False)
+    calf = root / "camera.lfcal"
+    run_calibration(sim.calibration_dir).save(calf)
+    inp = root / "in"
+    (inp / "sub").mkdir(parents=True)
+    for name, path in sim.captures.items():
+        shutil.copy(path, inp / f"{name}.png")
+    shutil.copy(sim.captures["planes"], inp / "sub" / "planes2.png")
+    shutil.copy(sim.captures["spheres"], inp / "sub" / "spheres2.png")
+    ref = root / "ref"
+    summary = lfcam.process_folder(inp, calf, ref)
+    assert summary.done == tuple(str(inp / f"{n}.png") for n in NAMES)
+    return {"cal": calf, "in": inp, "ref": ref, "root": root}
+
+
+def _files(folder: Path) -> dict[str, bytes]:
+    """Every file below ``folder`` (hidden ones too) by relative path; result.json
+    without the run's timings and its jobs/threads."""
+    out = {}
+    for p in sorted(folder.rglob("*")):
+        if p.is_dir():
+            continue
+        data = p.read_bytes()
+        if p.name == "result.json":
+            info = json.loads(data)
+            info.pop("timings_s")
+            info["parameters"].pop("jobs")
+            info["parameters"].pop("threads")
+            data = json.dumps(info, sort_keys=True).encode()
+        out[str(p.relative_to(folder))] = data
+    return out
+
+
+def _assert_same(out: Path, ref: Path) -> None:
+    got, want = _files(out), _files(ref)
+    assert sorted(got) == sorted(want)  # no temporaries or lock files left either
+    assert [k for k in want if got[k] != want[k]] == []
+
+
+# ---------------------------------------------------------------------------
+# Locks and stale temporaries
+# ---------------------------------------------------------------------------
+def _hold(path: Path, held: threading.Event, release: threading.Event) -> None:
+    with path_lock(path):
+        held.set()
+        release.wait(30)
+
+
+def test_lock_excludes_other_holders_and_is_removed(tmp_path) -> None:
+    target = tmp_path / "cap"
+    held, release = threading.Event(), threading.Event()
+    t = threading.Thread(target=_hold, args=(target, held, release))
+    t.start()
+    assert held.wait(10)
+    assert lock_path(target).is_file()
+    with pytest.raises(LockBusy, match=r"\.cap\.lock"), path_lock(target, wait=False):
+        pass
+    release.set()
+    t.join()
+    assert not lock_path(target).exists()
+    with path_lock(target, wait=False), path_lock(target, wait=False):  # re-entrant
+        assert lock_path(target).is_file()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_remove_stale_only_what_no_run_holds(tmp_path) -> None:
+    d = tmp_path
+    (d / ".a.tmp-abcd1234").mkdir()  # a folder being written when its run died
+    (d / ".a.tmp-abcd1234" / "depth.tiff").write_bytes(b"x")
+    (d / ".a.lock").write_bytes(b"")  # its lock file
+    (d / ".b.old-k_9zzzzz" / "b").mkdir(parents=True)  # set aside by a dead --overwrite
+    (d / ".b.old-k_9zzzzz" / "b" / "result.json").write_text("{}")
+    (d / ".c.old-qqqqqqqq" / "c").mkdir(parents=True)  # set aside, replacement renamed in
+    (d / "c").mkdir()
+    (d / "c" / "result.json").write_text('{"new": 1}')
+    (d / ".p.png.tmp-0a1b2c3d.png").write_bytes(b"half a file")
+    (d / ".live.tmp-abcdefgh").mkdir()  # a live run's: its lock is held
+    keep = [".other", ".x.tmp-short", "y.tmp-abcdefgh", ".z.tmp-ABCDEFGH", "c"]
+    for name in keep[:-1]:
+        (d / name).write_bytes(b"not lfcam's")
+    held, release = threading.Event(), threading.Event()
+    t = threading.Thread(target=_hold, args=(d / "live", held, release))
+    t.start()
+    assert held.wait(10)
+    try:
+        removed = remove_stale(d)
+    finally:
+        release.set()
+        t.join()
+    assert sorted(p.name for p in removed) == [
+        ".a.tmp-abcd1234",
+        ".b.old-k_9zzzzz",
+        ".c.old-qqqqqqqq",
+        ".p.png.tmp-0a1b2c3d.png",
+    ]
+    assert sorted(p.name for p in d.iterdir()) == sorted([*keep, ".live.tmp-abcdefgh", "b"])
+    assert (d / "b" / "result.json").read_text() == "{}"  # put back
+    assert (d / "c" / "result.json").read_text() == '{"new": 1}'  # the new one stays
+    assert remove_stale(d) == [d / ".live.tmp-abcdefgh"]  # no longer held
+
+
+# ---------------------------------------------------------------------------
+# The local pool
+# ---------------------------------------------------------------------------
+def _init(x: int) -> int:
+    return x
+
+
+def _work(state: int, task: int) -> int:
+    if task == 2:
+        os.kill(os.getpid(), signal.SIGKILL)
+    return state * task
+
+
+def _bad_init() -> None:
+    raise OSError("cannot start")
+
+
+def test_pool_reports_a_dead_worker_and_goes_on() -> None:
+    results = dict(run_pool(list(range(7)), 2, _init, (10,), _work))
+    assert results.pop(2) == WorkerDied(-signal.SIGKILL)
+    assert results == {k: 10 * k for k in (0, 1, 3, 4, 5, 6)}
+    assert "SIGKILL" in str(WorkerDied(-signal.SIGKILL))
+    with pytest.raises(LfcamError, match="could not start: OSError: cannot start"):
+        list(run_pool([1, 2], 2, _bad_init, (), _work))
+
+
+# ---------------------------------------------------------------------------
+# process_folder
+# ---------------------------------------------------------------------------
+def test_jobs_2_identical_to_jobs_1_bad_capture_reported(small, tmp_path) -> None:
+    bad = tmp_path / "broken.png"
+    bad.write_bytes(b"\x89PNG\r\n\x1a\n not really")
+    seen: list[tuple[str, int, int]] = []
+    out = tmp_path / "out"
+    inputs = [small["in"], bad]
+    summary = lfcam.process_folder(
+        inputs, small["cal"], out, jobs=2, progress=lambda o, k, n: seen.append((o.status, k, n))
+    )
+    assert [s for s, _ in summary.failed] == [str(bad)]
+    assert summary.failed[0][1].startswith(f"{bad}: not a readable")  # the reader's reason
+    assert len(summary.done) == len(NAMES)
+    assert (summary.workers, summary.threads) == (2, max(1, (os.cpu_count() or 1) // 2))
+    assert [(k, n) for _, k, n in seen] == [(k, 7) for k in range(1, 8)]
+    assert sorted(st for st, _, _ in seen) == ["done"] * 6 + ["failed"]
+    _assert_same(out, small["ref"])
+    # Run again: everything complete is skipped, the bad capture fails again.
+    seen.clear()
+    again = lfcam.process_folder(
+        inputs, small["cal"], out, jobs=2, progress=lambda o, k, n: seen.append((o.status, k, n))
+    )
+    assert (again.done, len(again.skipped), len(again.failed)) == ((), len(NAMES), 1)
+    assert [(k, n) for _, k, n in seen] == [(k, 7) for k in range(1, 8)]
+    with pytest.raises(lfcam.InputError, match=r"^sav_views: not an option"):
+        lfcam.process_folder(inputs, small["cal"], out, sav_views=True)
+
+
+def test_worker_killed_mid_batch(small, tmp_path) -> None:
+    """A worker SIGKILLed while it holds a capture's lock: that capture is reported,
+    nothing half-written is left, the rest complete."""
+    if not LINUX:
+        pytest.skip("needs /proc/locks")
+    out = tmp_path / "out"
+    killed: list[str] = []
+
+    def killer() -> None:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and not killed:
+            for lock in out.rglob(".*.lock") if out.is_dir() else []:
+                pid = _lock_holder(lock)
+                if pid is not None and pid != os.getpid():
+                    os.kill(pid, signal.SIGKILL)
+                    killed.append(lock.name[1 : -len(".lock")])
+                    return
+            time.sleep(0.002)
+
+    t = threading.Thread(target=killer)
+    t.start()
+    summary = lfcam.process_folder(small["in"], small["cal"], out, jobs=2)
+    t.join()
+    assert len(killed) == 1
+    assert [(Path(s).stem, r) for s, r in summary.failed] == [
+        (killed[0], "the worker process was killed by SIGKILL (the out-of-memory killer?)")
+    ]
+    assert len(summary.done) == len(NAMES) - 1
+    failed_out = next(o.out for o in summary.outcomes if o.status == "failed")
+    ref = _files(small["ref"])
+    got = _files(out)
+    rel = str(Path(failed_out).relative_to(out))
+    assert sorted(got) == sorted(k for k in ref if not k.startswith(rel + "/"))
+    assert all(got[k] == ref[k] for k in got)
+
+
+def _lock_holder(lock: Path) -> int | None:
+    """The pid holding an flock on ``lock`` (from /proc/locks), if any."""
+    try:
+        ino = lock.stat().st_ino
+        text = Path("/proc/locks").read_text()
+    except OSError:
+        return None
+    for line in text.splitlines():
+        f = line.split()
+        if len(f) >= 6 and f[1] == "FLOCK" and f[5].split(":")[-1] == str(ino):
+            return int(f[4])
+    return None
+
+
+# ---------------------------------------------------------------------------
+# The kill test: `lfcam process` SIGKILLed at several points, then rerun
+# ---------------------------------------------------------------------------
+def _lfcam(*args: str) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [sys.executable, "-m", "lfcam", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def _wait_for(cond, what: str, proc: subprocess.Popen[str], timeout: float = 120) -> object:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        got = cond()
+        if got:
+            return got
+        assert proc.poll() is None, f"lfcam ended before {what}: {proc.communicate()}"
+        time.sleep(0.002)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def _children(pid: int) -> list[int]:
+    kids = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                stat = (d / "stat").read_text()
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+                kids.append(int(d.name))
+    return kids
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+def _kill(proc: subprocess.Popen[str]) -> None:
+    proc.kill()
+    proc.communicate()
+    assert proc.returncode == -signal.SIGKILL
+
+
+def _temporaries(out: Path) -> list[str]:
+    return [p.name for p in out.rglob(".*")]
+
+
+def test_kill_and_rerun(small, tmp_path) -> None:
+    if not LINUX:
+        pytest.skip("needs /proc")
+    cal, inp, out = str(small["cal"]), str(small["in"]), tmp_path / "out"
+    args = ("process", inp, "-c", cal, "-o", str(out))
+    # 1. while starting (before any capture).
+    p = _lfcam(*args)
+    time.sleep(0.3)
+    _kill(p)
+    # 2. in the middle of a capture (its lock is held), after another one completed.
+    p = _lfcam(*args)
+    _wait_for(
+        lambda: out.is_dir() and list(out.rglob("result.json")) and list(out.rglob(".*.lock")),
+        "a second capture",
+        p,
+    )
+    _kill(p)
+    # 3. while a capture's folder is being written.
+    p = _lfcam(*args)
+    _wait_for(lambda: out.is_dir() and list(out.rglob(".*.tmp-*")), "a temporary folder", p)
+    _kill(p)
+    assert _temporaries(out)  # something was left behind
+    # 4. --jobs 2: one worker in the middle of a capture, then the parent.
+    p = _lfcam(*args, "--jobs", "2")
+    lock = _wait_for(
+        lambda: [k for k in out.rglob(".*.lock") if _lock_holder(k) not in (None, p.pid)],
+        "a worker's capture",
+        p,
+    )
+    workers = _children(p.pid)
+    victim = _lock_holder(lock[0])
+    assert victim in workers
+    os.kill(victim, signal.SIGKILL)
+    _wait_for(
+        lambda: len([w for w in _children(p.pid) if _alive(w)]) >= len(workers), "a new worker", p
+    )
+    workers = _children(p.pid)
+    _wait_for(lambda: [k for k in out.rglob(".*.lock") if k != lock[0]], "another capture", p)
+    _kill(p)
+    deadline = time.monotonic() + 15
+    while time.monotonic() < deadline and any(_alive(w) for w in workers):
+        time.sleep(0.05)
+    assert [w for w in workers if _alive(w)] == []  # workers died with their parent
+    # The rerun completes what is missing and removes what the killed runs left.
+    p = _lfcam(*args)
+    stdout, stderr = p.communicate(timeout=300)
+    assert p.returncode == 0, stderr
+    assert "skipped" in stdout
+    _assert_same(out, small["ref"])
+
+
+def test_concurrent_runs_share_the_work(small, tmp_path) -> None:
+    """Two runs on one output folder at once: each capture is processed once."""
+    out = tmp_path / "out"
+    args = ("process", str(small["in"]), "-c", str(small["cal"]), "-o", str(out))
+    runs = [_lfcam(*args), _lfcam(*args)]
+    texts = [p.communicate(timeout=300) for p in runs]
+    assert [p.returncode for p in runs] == [0, 0], texts
+    done = [int(t[0].split("processed ")[1].split()[0]) for t in texts]
+    assert sum(done) == len(NAMES), texts
+    _assert_same(out, small["ref"])
