@@ -364,3 +364,169 @@ def test_concurrent_runs_share_the_work(small, tmp_path) -> None:
     done = [int(t[0].split("processed ")[1].split()[0]) for t in texts]
     assert sum(done) == len(NAMES), texts
     _assert_same(out, small["ref"])
+
+
+# ---------------------------------------------------------------------------
+# On a Dask cluster (lfcam[dask])
+# ---------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def dask_client():
+    """A LocalCluster of 2 worker processes (1 thread each) and its client."""
+    distributed = pytest.importorskip("distributed")
+    with (
+        distributed.LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0"
+        ) as cluster,
+        distributed.Client(cluster) as client,
+    ):
+        yield client
+
+
+def test_cluster_identical_to_jobs_1_calibration_once(small, dask_client, tmp_path) -> None:
+    from lfcam.batch.cluster import calibration_loads
+
+    bad = tmp_path / "broken.png"
+    bad.write_bytes(b"\x89PNG\r\n\x1a\n not really")
+    out = tmp_path / "out"
+    seen: list[int] = []
+    summary = lfcam.process_folder(
+        [small["in"], bad],
+        small["cal"],
+        out,
+        client=dask_client,
+        progress=lambda o, k, n: seen.append(k),
+    )
+    assert [s for s, _ in summary.failed] == [str(bad)]
+    assert len(summary.done) == len(NAMES)
+    assert seen == list(range(1, len(NAMES) + 2))
+    assert (summary.workers, summary.threads) == (2, 1)
+    _assert_same(out, small["ref"])
+    # Each worker loaded the calibration once, not once per task.
+    sha = lfcam.io.file_hash(small["cal"])
+    loads = dask_client.run(calibration_loads)
+    assert sorted(loads.values(), key=str) == [{sha: 1}, {sha: 1}]
+    # A calibration without a file is scattered to the workers.
+    out2 = tmp_path / "out2"
+    cal = lfcam.Calibration.load(small["cal"])
+    summary = lfcam.process_folder(small["in"] / "sub", cal, out2, client=dask_client)
+    assert len(summary.done) == 2
+    for name in ("planes2", "spheres2"):
+        for f in ("depth.tiff", "points.ply"):
+            assert (out2 / name / f).read_bytes() == (small["ref"] / "sub" / name / f).read_bytes()
+
+
+def test_cluster_worker_killed_mid_batch(small, dask_client, tmp_path) -> None:
+    """A worker SIGKILLed in the middle of a capture: its nanny restarts it, Dask runs
+    the capture again, and the batch completes with nothing half-written."""
+    if not LINUX:
+        pytest.skip("needs /proc/locks")
+    out = tmp_path / "out"
+    killed: list[int] = []
+
+    def killer() -> None:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and not killed:
+            for lock in out.rglob(".*.lock") if out.is_dir() else []:
+                pid = _lock_holder(lock)
+                if pid is not None and pid != os.getpid():
+                    os.kill(pid, signal.SIGKILL)
+                    killed.append(pid)
+                    return
+            time.sleep(0.002)
+
+    t = threading.Thread(target=killer)
+    t.start()
+    summary = lfcam.process_folder(small["in"], small["cal"], out, client=dask_client)
+    t.join()
+    assert len(killed) == 1
+    assert (len(summary.done), summary.failed) == (len(NAMES), ())
+    _assert_same(out, small["ref"])
+    dask_client.wait_for_workers(2, timeout=60)
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def test_cluster_command_line(small, tmp_path, capsys) -> None:
+    pytest.importorskip("distributed")
+    from lfcam.cli import main
+
+    args = ["process", str(small["in"]), "-c", str(small["cal"])]
+    out = tmp_path / "out"
+    assert main([*args, "-o", str(out), "--cluster", "local:2"]) == 0
+    text = capsys.readouterr().out
+    assert "dask cluster local:2: dashboard http://" in text
+    assert f"processed {len(NAMES)} capture(s)" in text
+    _assert_same(out, small["ref"])
+    # Nobody listening: exit 2 within the timeout (plus start-up), naming --cluster.
+    t0 = time.monotonic()
+    where = f"tcp://127.0.0.1:{_free_port()}"
+    code = main([*args, "-o", str(tmp_path / "o2"), "--cluster", where, "--cluster-timeout", "2"])
+    assert code == 2
+    assert time.monotonic() - t0 < 2 + 20
+    assert f"--cluster: no Dask scheduler answered at {where} within 2 s" in capsys.readouterr().err
+    for bad, msg in (
+        (["--cluster", "local:0"], "--cluster: expected local:N with N >= 1"),
+        (["--cluster", "slurm:x"], "--cluster: expected slurm[:JOBS]"),
+        (["--cluster", "local:2", "--jobs", "2"], "--jobs: not with --cluster"),
+        (["--cluster", "local:1", "--cluster-timeout", "0"], "--cluster-timeout: must be > 0"),
+    ):
+        assert main([*args, "-o", str(tmp_path / "o3"), *bad]) == 2
+        assert msg in capsys.readouterr().err
+
+
+def test_cluster_needs_the_extra(small, tmp_path, capsys, monkeypatch) -> None:
+    from lfcam.cli import main
+
+    monkeypatch.setitem(sys.modules, "distributed", None)  # as if not installed
+    args = ["process", str(small["in"]), "-c", str(small["cal"]), "-o", str(tmp_path / "o")]
+    assert main([*args, "--cluster", "local:2"]) == 2
+    assert 'install the extra: pip install "lfcam[dask]"' in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+SLURM_YAML = """\
+jobqueue:
+  slurm:
+    cores: 8            # per batch job
+    processes: 2        # Dask workers per job, 4 threads each
+    memory: 16GB
+    walltime: "01:00:00"
+    queue: normal
+    account: mylab
+    job-script-prologue:
+      - source /opt/lfcam/venv/bin/activate
+"""
+
+
+def test_slurm_config(tmp_path) -> None:
+    pytest.importorskip("dask_jobqueue")
+    from lfcam.batch.cluster import make_jobqueue_cluster
+
+    cfg = tmp_path / "slurm.yaml"
+    cfg.write_text(SLURM_YAML)
+    with make_jobqueue_cluster("slurm", cfg) as cluster:
+        script = cluster.job_script()
+    for line in (
+        "#SBATCH -p normal",
+        "#SBATCH -A mylab",
+        "#SBATCH --cpus-per-task=8",
+        "#SBATCH -t 01:00:00",
+        "source /opt/lfcam/venv/bin/activate",
+    ):
+        assert line in script.splitlines()
+    assert "--nthreads 4" in script
+    assert "--nworkers 2" in script
+    cfg.write_text("jobqueue:\n  slurm:\n    cores: 8\n")
+    with pytest.raises(
+        lfcam.InputError, match=r"slurm.yaml: cannot start a slurm cluster: .*memory"
+    ):
+        make_jobqueue_cluster("slurm", cfg)
+    cfg.write_text("jobqueue: [")
+    with pytest.raises(lfcam.InputError, match=r"slurm.yaml: not a readable YAML file"):
+        make_jobqueue_cluster("slurm", cfg)

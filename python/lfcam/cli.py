@@ -7,6 +7,7 @@ argument), 1 an unexpected internal error.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 import time
@@ -289,7 +290,30 @@ def _add_process(sub: Any) -> None:
     p.add_argument("input", type=Path, help="a raw capture or a folder of them")
     p.add_argument("-c", "--calibration", type=Path, required=True, help="CAMERA.lfcal")
     p.add_argument("-o", "--output", type=Path, required=True, help="output folder")
-    p.add_argument("--jobs", type=int, default=1, help="captures processed in parallel")
+    p.add_argument(
+        "--jobs", type=int, default=1, help="captures processed in parallel on this machine"
+    )
+    p.add_argument(
+        "--cluster",
+        metavar="WHERE",
+        help="run on a Dask cluster (needs lfcam[dask]): a scheduler's address "
+        "(tcp://HOST:8786), local:N (N local worker processes), or slurm[:JOBS], pbs, sge, "
+        "lsf, htcondor (batch jobs of workers through dask-jobqueue, see --cluster-config)",
+    )
+    p.add_argument(
+        "--cluster-config",
+        type=Path,
+        metavar="YAML",
+        help="Dask configuration for --cluster slurm etc. (jobqueue: slurm: cores: ...; "
+        "default: Dask's own, ~/.config/dask/jobqueue.yaml)",
+    )
+    p.add_argument(
+        "--cluster-timeout",
+        type=float,
+        default=10.0,
+        metavar="S",
+        help="seconds to wait for the scheduler to answer (default 10)",
+    )
     p.add_argument("--save-views", action="store_true", help="also write the rectified views")
     p.add_argument(
         "--superres",
@@ -362,25 +386,46 @@ def _cmd_process(args: argparse.Namespace) -> int:
         novel=_novel_options(args, cal),
         overwrite=args.overwrite,
     )
+    if args.cluster is not None and args.jobs != 1:
+        raise InputError("--jobs: not with --cluster (the cluster's workers run the captures)")
+    if not args.cluster_timeout > 0:
+        raise InputError(f"--cluster-timeout: must be > 0, got {args.cluster_timeout}")
     from tqdm import tqdm
 
-    bar = tqdm(desc="process", unit="capture", file=sys.stderr, disable=None)
+    with contextlib.ExitStack() as stack:
+        client = None
+        if args.cluster is not None:
+            from .batch.cluster import cluster_client
 
-    def progress(outcome: Any, finished: int, total: int) -> None:
-        bar.total = total
-        bar.update(1)
+            client = stack.enter_context(
+                cluster_client(
+                    args.cluster, config=args.cluster_config, timeout=args.cluster_timeout
+                )
+            )
+            print(f"dask cluster {args.cluster}: dashboard {client.dashboard_link}", flush=True)
+        bar = stack.enter_context(
+            tqdm(desc="process", unit="capture", file=sys.stderr, disable=None)
+        )
 
-    try:
+        def progress(outcome: Any, finished: int, total: int) -> None:
+            # Done / total, rate and ETA over the captures that need work.
+            if bar.total is None:
+                bar.total = total
+            if outcome.status == "skipped":
+                bar.total -= 1
+                bar.refresh()
+            else:
+                bar.update(1)
+
         summary = process_folder(
             args.input,
             args.calibration,
             args.output,
+            client=client,
             jobs=args.jobs,
             options=options,
             progress=progress,
         )
-    finally:
-        bar.close()
     done, skipped, failures = summary.done, summary.skipped, summary.failed
     print(
         f"processed {len(done)} capture(s) in {summary.seconds:.1f} s"
