@@ -206,19 +206,7 @@ def test_worker_killed_mid_batch(small, tmp_path) -> None:
         pytest.skip("needs /proc/locks")
     out = tmp_path / "out"
     killed: list[str] = []
-
-    def killer() -> None:
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and not killed:
-            for lock in out.rglob(".*.lock") if out.is_dir() else []:
-                pid = _lock_holder(lock)
-                if pid is not None and pid != os.getpid():
-                    os.kill(pid, signal.SIGKILL)
-                    killed.append(lock.name[1 : -len(".lock")])
-                    return
-            time.sleep(0.002)
-
-    t = threading.Thread(target=killer)
+    t = threading.Thread(target=_kill_a_lock_holder, args=(out, killed))
     t.start()
     summary = lfcam.process_folder(small["in"], small["cal"], out, jobs=2)
     t.join()
@@ -233,6 +221,20 @@ def test_worker_killed_mid_batch(small, tmp_path) -> None:
     rel = str(Path(failed_out).relative_to(out))
     assert sorted(got) == sorted(k for k in ref if not k.startswith(rel + "/"))
     assert all(got[k] == ref[k] for k in got)
+
+
+def _kill_a_lock_holder(out: Path, killed: list[str]) -> None:
+    """SIGKILL the first other process seen holding a capture's lock below ``out``;
+    append the capture's name to ``killed``."""
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        for lock in out.rglob(".*.lock") if out.is_dir() else []:
+            pid = _lock_holder(lock)
+            if pid is not None and pid != os.getpid():
+                os.kill(pid, signal.SIGKILL)
+                killed.append(lock.name[1 : -len(".lock")])
+                return
+        time.sleep(0.002)
 
 
 def _lock_holder(lock: Path) -> int | None:
@@ -421,20 +423,8 @@ def test_cluster_worker_killed_mid_batch(small, dask_client, tmp_path) -> None:
     if not LINUX:
         pytest.skip("needs /proc/locks")
     out = tmp_path / "out"
-    killed: list[int] = []
-
-    def killer() -> None:
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and not killed:
-            for lock in out.rglob(".*.lock") if out.is_dir() else []:
-                pid = _lock_holder(lock)
-                if pid is not None and pid != os.getpid():
-                    os.kill(pid, signal.SIGKILL)
-                    killed.append(pid)
-                    return
-            time.sleep(0.002)
-
-    t = threading.Thread(target=killer)
+    killed: list[str] = []
+    t = threading.Thread(target=_kill_a_lock_holder, args=(out, killed))
     t.start()
     summary = lfcam.process_folder(small["in"], small["cal"], out, client=dask_client)
     t.join()
