@@ -20,6 +20,7 @@ from pathlib import Path
 import pytest
 
 import lfcam
+from lfcam.batch.folder import find_captures
 from lfcam.batch.pool import WorkerDied, run_pool
 from lfcam.calibration.calibrate import run_calibration
 from lfcam.errors import LfcamError
@@ -97,7 +98,7 @@ def test_lock_excludes_other_holders_and_is_removed(tmp_path) -> None:
     t.start()
     assert held.wait(10)
     assert lock_path(target).is_file()
-    with pytest.raises(LockBusy, match=r"\.cap\.lock"), path_lock(target, wait=False):
+    with pytest.raises(LockBusy, match=r"\.cap\.lfcam-lock"), path_lock(target, wait=False):
         pass
     release.set()
     t.join()
@@ -111,7 +112,7 @@ def test_remove_stale_only_what_no_run_holds(tmp_path) -> None:
     d = tmp_path
     (d / ".a.tmp-abcd1234").mkdir()  # a folder being written when its run died
     (d / ".a.tmp-abcd1234" / "depth.tiff").write_bytes(b"x")
-    (d / ".a.lock").write_bytes(b"")  # its lock file
+    (d / ".a.lfcam-lock").write_bytes(b"")  # its lock file
     (d / ".b.old-k_9zzzzz" / "b").mkdir(parents=True)  # set aside by a dead --overwrite
     (d / ".b.old-k_9zzzzz" / "b" / "result.json").write_text("{}")
     (d / ".c.old-qqqqqqqq" / "c").mkdir(parents=True)  # set aside, replacement renamed in
@@ -119,7 +120,8 @@ def test_remove_stale_only_what_no_run_holds(tmp_path) -> None:
     (d / "c" / "result.json").write_text('{"new": 1}')
     (d / ".p.png.tmp-0a1b2c3d.png").write_bytes(b"half a file")
     (d / ".live.tmp-abcdefgh").mkdir()  # a live run's: its lock is held
-    keep = [".other", ".x.tmp-short", "y.tmp-abcdefgh", ".z.tmp-ABCDEFGH", "c"]
+    # Not lfcam's: ".q.lock" is another program's lock file, "c" a complete output.
+    keep = [".other", ".x.tmp-short", "y.tmp-abcdefgh", ".z.tmp-ABCDEFGH", ".q.lock", "c"]
     for name in keep[:-1]:
         (d / name).write_bytes(b"not lfcam's")
     held, release = threading.Event(), threading.Event()
@@ -160,6 +162,12 @@ def _bad_init() -> None:
     raise OSError("cannot start")
 
 
+def _work_then_exit(state: int, task: int) -> int:
+    if task == 1:  # dies just after sending its result, before the next task reaches it
+        threading.Timer(0.1, os._exit, (0,)).start()
+    return state * task
+
+
 def test_pool_reports_a_dead_worker_and_goes_on() -> None:
     results = dict(run_pool(list(range(7)), 2, _init, (10,), _work))
     assert results.pop(2) == WorkerDied(-signal.SIGKILL)
@@ -169,9 +177,54 @@ def test_pool_reports_a_dead_worker_and_goes_on() -> None:
         list(run_pool([1, 2], 2, _bad_init, (), _work))
 
 
+def test_pool_worker_dead_before_its_next_task(monkeypatch) -> None:
+    """A task sent to a worker that has just died is run by its replacement."""
+    from lfcam.batch import pool
+
+    real = pool.wait
+
+    def slow_wait(conns):  # type: ignore[no-untyped-def]
+        ready = real(conns)
+        time.sleep(0.4)  # long enough for the worker to have exited
+        return ready
+
+    monkeypatch.setattr(pool, "wait", slow_wait)
+    results = dict(run_pool([0, 1, 2, 3], 1, _init, (10,), _work_then_exit))
+    assert results == {k: 10 * k for k in range(4)}
+
+
 # ---------------------------------------------------------------------------
 # process_folder
 # ---------------------------------------------------------------------------
+def test_nested_output_folders_refused(tmp_path) -> None:
+    inp, out = tmp_path / "in", tmp_path / "out"
+    (inp / "sub").mkdir(parents=True)
+    for name in ("sub.png", "sub/x.png"):
+        (inp / name).write_bytes(b"")
+    with pytest.raises(lfcam.InputError) as e:
+        find_captures(inp, out)
+    assert str(e.value) == (
+        f"{inp / 'sub/x.png'}: its output folder {out / 'sub/x'} is inside that of"
+        f" {inp / 'sub.png'} ({out / 'sub'}), which writing it would replace"
+    )
+    # Also across inputs: a file and a folder.
+    other = tmp_path / "other"
+    (other / "sub").mkdir(parents=True)
+    (other / "sub" / "y.png").write_bytes(b"")
+    with pytest.raises(lfcam.InputError, match=r"/y\.png: its output folder .* is inside"):
+        find_captures([inp / "sub.png", other], out)
+    (inp / "sub.png").unlink()
+    (inp / "sub" / "x.tif").write_bytes(b"")
+    with pytest.raises(lfcam.InputError) as e:
+        find_captures(inp, out)
+    assert str(e.value) == (
+        f"{inp / 'sub/x.tif'}: has the same output folder as {inp / 'sub/x.png'} ({out / 'sub/x'})"
+    )
+    (inp / "sub" / "x.tif").unlink()
+    (inp / "subway.png").write_bytes(b"")  # a name that starts like another is fine
+    assert [t.out for t in find_captures(inp, out)] == [str(out / "sub/x"), str(out / "subway")]
+
+
 def test_jobs_2_identical_to_jobs_1_bad_capture_reported(small, tmp_path) -> None:
     bad = tmp_path / "broken.png"
     bad.write_bytes(b"\x89PNG\r\n\x1a\n not really")
@@ -182,7 +235,7 @@ def test_jobs_2_identical_to_jobs_1_bad_capture_reported(small, tmp_path) -> Non
         inputs, small["cal"], out, jobs=2, progress=lambda o, k, n: seen.append((o.status, k, n))
     )
     assert [s for s, _ in summary.failed] == [str(bad)]
-    assert summary.failed[0][1].startswith(f"{bad}: not a readable")  # the reader's reason
+    assert summary.failed[0][1] == f"{bad}: not a readable PNG (no PNG header)"  # the reader's
     assert len(summary.done) == len(NAMES)
     assert (summary.workers, summary.threads) == (2, max(1, (os.cpu_count() or 1) // 2))
     assert [(k, n) for _, k, n in seen] == [(k, 7) for k in range(1, 8)]
@@ -228,11 +281,11 @@ def _kill_a_lock_holder(out: Path, killed: list[str]) -> None:
     append the capture's name to ``killed``."""
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:
-        for lock in out.rglob(".*.lock") if out.is_dir() else []:
+        for lock in out.rglob(".*.lfcam-lock") if out.is_dir() else []:
             pid = _lock_holder(lock)
             if pid is not None and pid != os.getpid():
                 os.kill(pid, signal.SIGKILL)
-                killed.append(lock.name[1 : -len(".lock")])
+                killed.append(lock.name[1 : -len(".lfcam-lock")])
                 return
         time.sleep(0.002)
 
@@ -317,7 +370,9 @@ def test_kill_and_rerun(small, tmp_path) -> None:
     # 2. in the middle of a capture (its lock is held), after another one completed.
     p = _lfcam(*args)
     _wait_for(
-        lambda: out.is_dir() and list(out.rglob("result.json")) and list(out.rglob(".*.lock")),
+        lambda: (
+            out.is_dir() and list(out.rglob("result.json")) and list(out.rglob(".*.lfcam-lock"))
+        ),
         "a second capture",
         p,
     )
@@ -330,7 +385,7 @@ def test_kill_and_rerun(small, tmp_path) -> None:
     # 4. --jobs 2: one worker in the middle of a capture, then the parent.
     p = _lfcam(*args, "--jobs", "2")
     lock = _wait_for(
-        lambda: [k for k in out.rglob(".*.lock") if _lock_holder(k) not in (None, p.pid)],
+        lambda: [k for k in out.rglob(".*.lfcam-lock") if _lock_holder(k) not in (None, p.pid)],
         "a worker's capture",
         p,
     )
@@ -342,7 +397,7 @@ def test_kill_and_rerun(small, tmp_path) -> None:
         lambda: len([w for w in _children(p.pid) if _alive(w)]) >= len(workers), "a new worker", p
     )
     workers = _children(p.pid)
-    _wait_for(lambda: [k for k in out.rglob(".*.lock") if k != lock[0]], "another capture", p)
+    _wait_for(lambda: [k for k in out.rglob(".*.lfcam-lock") if k != lock[0]], "another capture", p)
     _kill(p)
     deadline = time.monotonic() + 15
     while time.monotonic() < deadline and any(_alive(w) for w in workers):

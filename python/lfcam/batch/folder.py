@@ -79,6 +79,8 @@ def find_captures(
 
     A file ``x.png`` goes to ``OUT/x``; a folder is searched recursively and
     ``IN/a/b.png`` goes to ``OUT/a/b``, leaving out anything inside ``OUT`` itself.
+    Two captures whose output folders are the same, or one inside the other (``IN/a.png``
+    and ``IN/a/b.png``), are an :class:`~lfcam.InputError` naming both.
     """
     out = Path(out_dir)
     items = [inputs] if isinstance(inputs, (str, os.PathLike)) else list(inputs)
@@ -103,11 +105,23 @@ def find_captures(
         tasks += [
             CaptureTask(str(p), str(out / p.relative_to(path).with_suffix(""))) for p in found
         ]
-    seen: dict[str, str] = {}
+    # One output folder inside another would be deleted when the outer one is written.
+    seen: dict[tuple[str, ...], CaptureTask] = {}
     for t in tasks:
-        if t.out in seen:
-            raise InputError(f"{t.source}: has the same output folder as {seen[t.out]} ({t.out})")
-        seen[t.out] = t.source
+        parts = Path(t.out).parts
+        if parts in seen:
+            raise InputError(
+                f"{t.source}: has the same output folder as {seen[parts].source} ({t.out})"
+            )
+        seen[parts] = t
+    for parts, t in seen.items():
+        for n in range(1, len(parts)):
+            outer = seen.get(parts[:n])
+            if outer is not None:
+                raise InputError(
+                    f"{t.source}: its output folder {t.out} is inside that of"
+                    f" {outer.source} ({outer.out}), which writing it would replace"
+                )
     return tasks
 
 
