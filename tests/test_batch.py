@@ -20,6 +20,7 @@ from pathlib import Path
 import pytest
 
 import lfcam
+from lfcam.batch.folder import find_captures
 from lfcam.batch.pool import WorkerDied, run_pool
 from lfcam.calibration.calibrate import run_calibration
 from lfcam.errors import LfcamError
@@ -97,7 +98,7 @@ def test_lock_excludes_other_holders_and_is_removed(tmp_path) -> None:
     t.start()
     assert held.wait(10)
     assert lock_path(target).is_file()
-    with pytest.raises(LockBusy, match=r"\.cap\.lock"), path_lock(target, wait=False):
+    with pytest.raises(LockBusy, match=r"\.cap\.lfcam-lock"), path_lock(target, wait=False):
         pass
     release.set()
     t.join()
@@ -111,7 +112,7 @@ def test_remove_stale_only_what_no_run_holds(tmp_path) -> None:
     d = tmp_path
     (d / ".a.tmp-abcd1234").mkdir()  # a folder being written when its run died
     (d / ".a.tmp-abcd1234" / "depth.tiff").write_bytes(b"x")
-    (d / ".a.lock").write_bytes(b"")  # its lock file
+    (d / ".a.lfcam-lock").write_bytes(b"")  # its lock file
     (d / ".b.old-k_9zzzzz" / "b").mkdir(parents=True)  # set aside by a dead --overwrite
     (d / ".b.old-k_9zzzzz" / "b" / "result.json").write_text("{}")
     (d / ".c.old-qqqqqqqq" / "c").mkdir(parents=True)  # set aside, replacement renamed in
@@ -119,7 +120,8 @@ def test_remove_stale_only_what_no_run_holds(tmp_path) -> None:
     (d / "c" / "result.json").write_text('{"new": 1}')
     (d / ".p.png.tmp-0a1b2c3d.png").write_bytes(b"half a file")
     (d / ".live.tmp-abcdefgh").mkdir()  # a live run's: its lock is held
-    keep = [".other", ".x.tmp-short", "y.tmp-abcdefgh", ".z.tmp-ABCDEFGH", "c"]
+    # Not lfcam's: ".q.lock" is another program's lock file, "c" a complete output.
+    keep = [".other", ".x.tmp-short", "y.tmp-abcdefgh", ".z.tmp-ABCDEFGH", ".q.lock", "c"]
     for name in keep[:-1]:
         (d / name).write_bytes(b"not lfcam's")
     held, release = threading.Event(), threading.Event()
@@ -160,6 +162,12 @@ def _bad_init() -> None:
     raise OSError("cannot start")
 
 
+def _work_then_exit(state: int, task: int) -> int:
+    if task == 1:  # dies just after sending its result, before the next task reaches it
+        threading.Timer(0.1, os._exit, (0,)).start()
+    return state * task
+
+
 def test_pool_reports_a_dead_worker_and_goes_on() -> None:
     results = dict(run_pool(list(range(7)), 2, _init, (10,), _work))
     assert results.pop(2) == WorkerDied(-signal.SIGKILL)
@@ -169,9 +177,54 @@ def test_pool_reports_a_dead_worker_and_goes_on() -> None:
         list(run_pool([1, 2], 2, _bad_init, (), _work))
 
 
+def test_pool_worker_dead_before_its_next_task(monkeypatch) -> None:
+    """A task sent to a worker that has just died is run by its replacement."""
+    from lfcam.batch import pool
+
+    real = pool.wait
+
+    def slow_wait(conns):  # type: ignore[no-untyped-def]
+        ready = real(conns)
+        time.sleep(0.4)  # long enough for the worker to have exited
+        return ready
+
+    monkeypatch.setattr(pool, "wait", slow_wait)
+    results = dict(run_pool([0, 1, 2, 3], 1, _init, (10,), _work_then_exit))
+    assert results == {k: 10 * k for k in range(4)}
+
+
 # ---------------------------------------------------------------------------
 # process_folder
 # ---------------------------------------------------------------------------
+def test_nested_output_folders_refused(tmp_path) -> None:
+    inp, out = tmp_path / "in", tmp_path / "out"
+    (inp / "sub").mkdir(parents=True)
+    for name in ("sub.png", "sub/x.png"):
+        (inp / name).write_bytes(b"")
+    with pytest.raises(lfcam.InputError) as e:
+        find_captures(inp, out)
+    assert str(e.value) == (
+        f"{inp / 'sub/x.png'}: its output folder {out / 'sub/x'} is inside that of"
+        f" {inp / 'sub.png'} ({out / 'sub'}), which writing it would replace"
+    )
+    # Also across inputs: a file and a folder.
+    other = tmp_path / "other"
+    (other / "sub").mkdir(parents=True)
+    (other / "sub" / "y.png").write_bytes(b"")
+    with pytest.raises(lfcam.InputError, match=r"/y\.png: its output folder .* is inside"):
+        find_captures([inp / "sub.png", other], out)
+    (inp / "sub.png").unlink()
+    (inp / "sub" / "x.tif").write_bytes(b"")
+    with pytest.raises(lfcam.InputError) as e:
+        find_captures(inp, out)
+    assert str(e.value) == (
+        f"{inp / 'sub/x.tif'}: has the same output folder as {inp / 'sub/x.png'} ({out / 'sub/x'})"
+    )
+    (inp / "sub" / "x.tif").unlink()
+    (inp / "subway.png").write_bytes(b"")  # a name that starts like another is fine
+    assert [t.out for t in find_captures(inp, out)] == [str(out / "sub/x"), str(out / "subway")]
+
+
 def test_jobs_2_identical_to_jobs_1_bad_capture_reported(small, tmp_path) -> None:
     bad = tmp_path / "broken.png"
     bad.write_bytes(b"\x89PNG\r\n\x1a\n not really")
@@ -182,7 +235,7 @@ def test_jobs_2_identical_to_jobs_1_bad_capture_reported(small, tmp_path) -> Non
         inputs, small["cal"], out, jobs=2, progress=lambda o, k, n: seen.append((o.status, k, n))
     )
     assert [s for s, _ in summary.failed] == [str(bad)]
-    assert summary.failed[0][1].startswith(f"{bad}: not a readable")  # the reader's reason
+    assert summary.failed[0][1] == f"{bad}: not a readable PNG (no PNG header)"  # the reader's
     assert len(summary.done) == len(NAMES)
     assert (summary.workers, summary.threads) == (2, max(1, (os.cpu_count() or 1) // 2))
     assert [(k, n) for _, k, n in seen] == [(k, 7) for k in range(1, 8)]
@@ -206,19 +259,7 @@ def test_worker_killed_mid_batch(small, tmp_path) -> None:
         pytest.skip("needs /proc/locks")
     out = tmp_path / "out"
     killed: list[str] = []
-
-    def killer() -> None:
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and not killed:
-            for lock in out.rglob(".*.lock") if out.is_dir() else []:
-                pid = _lock_holder(lock)
-                if pid is not None and pid != os.getpid():
-                    os.kill(pid, signal.SIGKILL)
-                    killed.append(lock.name[1 : -len(".lock")])
-                    return
-            time.sleep(0.002)
-
-    t = threading.Thread(target=killer)
+    t = threading.Thread(target=_kill_a_lock_holder, args=(out, killed))
     t.start()
     summary = lfcam.process_folder(small["in"], small["cal"], out, jobs=2)
     t.join()
@@ -233,6 +274,20 @@ def test_worker_killed_mid_batch(small, tmp_path) -> None:
     rel = str(Path(failed_out).relative_to(out))
     assert sorted(got) == sorted(k for k in ref if not k.startswith(rel + "/"))
     assert all(got[k] == ref[k] for k in got)
+
+
+def _kill_a_lock_holder(out: Path, killed: list[str]) -> None:
+    """SIGKILL the first other process seen holding a capture's lock below ``out``;
+    append the capture's name to ``killed``."""
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        for lock in out.rglob(".*.lfcam-lock") if out.is_dir() else []:
+            pid = _lock_holder(lock)
+            if pid is not None and pid != os.getpid():
+                os.kill(pid, signal.SIGKILL)
+                killed.append(lock.name[1 : -len(".lfcam-lock")])
+                return
+        time.sleep(0.002)
 
 
 def _lock_holder(lock: Path) -> int | None:
@@ -315,7 +370,9 @@ def test_kill_and_rerun(small, tmp_path) -> None:
     # 2. in the middle of a capture (its lock is held), after another one completed.
     p = _lfcam(*args)
     _wait_for(
-        lambda: out.is_dir() and list(out.rglob("result.json")) and list(out.rglob(".*.lock")),
+        lambda: (
+            out.is_dir() and list(out.rglob("result.json")) and list(out.rglob(".*.lfcam-lock"))
+        ),
         "a second capture",
         p,
     )
@@ -328,7 +385,7 @@ def test_kill_and_rerun(small, tmp_path) -> None:
     # 4. --jobs 2: one worker in the middle of a capture, then the parent.
     p = _lfcam(*args, "--jobs", "2")
     lock = _wait_for(
-        lambda: [k for k in out.rglob(".*.lock") if _lock_holder(k) not in (None, p.pid)],
+        lambda: [k for k in out.rglob(".*.lfcam-lock") if _lock_holder(k) not in (None, p.pid)],
         "a worker's capture",
         p,
     )
@@ -340,7 +397,7 @@ def test_kill_and_rerun(small, tmp_path) -> None:
         lambda: len([w for w in _children(p.pid) if _alive(w)]) >= len(workers), "a new worker", p
     )
     workers = _children(p.pid)
-    _wait_for(lambda: [k for k in out.rglob(".*.lock") if k != lock[0]], "another capture", p)
+    _wait_for(lambda: [k for k in out.rglob(".*.lfcam-lock") if k != lock[0]], "another capture", p)
     _kill(p)
     deadline = time.monotonic() + 15
     while time.monotonic() < deadline and any(_alive(w) for w in workers):
@@ -364,3 +421,157 @@ def test_concurrent_runs_share_the_work(small, tmp_path) -> None:
     done = [int(t[0].split("processed ")[1].split()[0]) for t in texts]
     assert sum(done) == len(NAMES), texts
     _assert_same(out, small["ref"])
+
+
+# ---------------------------------------------------------------------------
+# On a Dask cluster (lfcam[dask])
+# ---------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def dask_client():
+    """A LocalCluster of 2 worker processes (1 thread each) and its client."""
+    distributed = pytest.importorskip("distributed")
+    with (
+        distributed.LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0"
+        ) as cluster,
+        distributed.Client(cluster) as client,
+    ):
+        yield client
+
+
+def test_cluster_identical_to_jobs_1_calibration_once(small, dask_client, tmp_path) -> None:
+    from lfcam.batch.cluster import calibration_loads
+
+    bad = tmp_path / "broken.png"
+    bad.write_bytes(b"\x89PNG\r\n\x1a\n not really")
+    out = tmp_path / "out"
+    seen: list[int] = []
+    summary = lfcam.process_folder(
+        [small["in"], bad],
+        small["cal"],
+        out,
+        client=dask_client,
+        progress=lambda o, k, n: seen.append(k),
+    )
+    assert [s for s, _ in summary.failed] == [str(bad)]
+    assert len(summary.done) == len(NAMES)
+    assert seen == list(range(1, len(NAMES) + 2))
+    assert (summary.workers, summary.threads) == (2, 1)
+    _assert_same(out, small["ref"])
+    # Each worker loaded the calibration once, not once per task.
+    sha = lfcam.io.file_hash(small["cal"])
+    loads = dask_client.run(calibration_loads)
+    assert sorted(loads.values(), key=str) == [{sha: 1}, {sha: 1}]
+    # A calibration without a file is scattered to the workers.
+    out2 = tmp_path / "out2"
+    cal = lfcam.Calibration.load(small["cal"])
+    summary = lfcam.process_folder(small["in"] / "sub", cal, out2, client=dask_client)
+    assert len(summary.done) == 2
+    for name in ("planes2", "spheres2"):
+        for f in ("depth.tiff", "points.ply"):
+            assert (out2 / name / f).read_bytes() == (small["ref"] / "sub" / name / f).read_bytes()
+
+
+def test_cluster_worker_killed_mid_batch(small, dask_client, tmp_path) -> None:
+    """A worker SIGKILLed in the middle of a capture: its nanny restarts it, Dask runs
+    the capture again, and the batch completes with nothing half-written."""
+    if not LINUX:
+        pytest.skip("needs /proc/locks")
+    out = tmp_path / "out"
+    killed: list[str] = []
+    t = threading.Thread(target=_kill_a_lock_holder, args=(out, killed))
+    t.start()
+    summary = lfcam.process_folder(small["in"], small["cal"], out, client=dask_client)
+    t.join()
+    assert len(killed) == 1
+    assert (len(summary.done), summary.failed) == (len(NAMES), ())
+    _assert_same(out, small["ref"])
+    dask_client.wait_for_workers(2, timeout=60)
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def test_cluster_command_line(small, tmp_path, capsys) -> None:
+    pytest.importorskip("distributed")
+    from lfcam.cli import main
+
+    args = ["process", str(small["in"]), "-c", str(small["cal"])]
+    out = tmp_path / "out"
+    assert main([*args, "-o", str(out), "--cluster", "local:2"]) == 0
+    text = capsys.readouterr().out
+    assert "dask cluster local:2: dashboard http://" in text
+    assert f"processed {len(NAMES)} capture(s)" in text
+    _assert_same(out, small["ref"])
+    # Nobody listening: exit 2 within the timeout (plus start-up), naming --cluster.
+    t0 = time.monotonic()
+    where = f"tcp://127.0.0.1:{_free_port()}"
+    code = main([*args, "-o", str(tmp_path / "o2"), "--cluster", where, "--cluster-timeout", "2"])
+    assert code == 2
+    assert time.monotonic() - t0 < 2 + 20
+    assert f"--cluster: no Dask scheduler answered at {where} within 2 s" in capsys.readouterr().err
+    for bad, msg in (
+        (["--cluster", "local:0"], "--cluster: expected local:N with N >= 1"),
+        (["--cluster", "slurm:x"], "--cluster: expected slurm[:JOBS]"),
+        (["--cluster", "local:2", "--jobs", "2"], "--jobs: not with --cluster"),
+        (["--cluster", "local:1", "--cluster-timeout", "0"], "--cluster-timeout: must be > 0"),
+    ):
+        assert main([*args, "-o", str(tmp_path / "o3"), *bad]) == 2
+        assert msg in capsys.readouterr().err
+
+
+def test_cluster_needs_the_extra(small, tmp_path, capsys, monkeypatch) -> None:
+    from lfcam.cli import main
+
+    monkeypatch.setitem(sys.modules, "distributed", None)  # as if not installed
+    args = ["process", str(small["in"]), "-c", str(small["cal"]), "-o", str(tmp_path / "o")]
+    assert main([*args, "--cluster", "local:2"]) == 2
+    assert 'install the extra: pip install "lfcam[dask]"' in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+SLURM_YAML = """\
+jobqueue:
+  slurm:
+    cores: 8            # per batch job
+    processes: 2        # Dask workers per job, 4 threads each
+    memory: 16GB
+    walltime: "01:00:00"
+    queue: normal
+    account: mylab
+    job-script-prologue:
+      - source /opt/lfcam/venv/bin/activate
+"""
+
+
+def test_slurm_config(tmp_path) -> None:
+    pytest.importorskip("dask_jobqueue")
+    from lfcam.batch.cluster import make_jobqueue_cluster
+
+    cfg = tmp_path / "slurm.yaml"
+    cfg.write_text(SLURM_YAML)
+    with make_jobqueue_cluster("slurm", cfg) as cluster:
+        script = cluster.job_script()
+    for line in (
+        "#SBATCH -p normal",
+        "#SBATCH -A mylab",
+        "#SBATCH --cpus-per-task=8",
+        "#SBATCH -t 01:00:00",
+        "source /opt/lfcam/venv/bin/activate",
+    ):
+        assert line in script.splitlines()
+    assert "--nthreads 4" in script
+    assert "--nworkers 2" in script
+    cfg.write_text("jobqueue:\n  slurm:\n    cores: 8\n")
+    with pytest.raises(
+        lfcam.InputError, match=r"slurm.yaml: cannot start a slurm cluster: .*memory"
+    ):
+        make_jobqueue_cluster("slurm", cfg)
+    cfg.write_text("jobqueue: [")
+    with pytest.raises(lfcam.InputError, match=r"slurm.yaml: not a readable YAML file"):
+        make_jobqueue_cluster("slurm", cfg)

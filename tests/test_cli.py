@@ -192,3 +192,25 @@ def test_version_shows_the_simd_paths_in_use() -> None:
     assert kernels
     assert all(order.index(v) <= order.index(simd["level"]) for v in kernels.values())
     assert order.index(simd["level"]) <= order.index(simd["cpu"])
+
+
+def test_progress_log_lines_off_a_terminal(caplog) -> None:
+    import io
+    import logging
+
+    from lfcam.progress import Progress
+
+    caplog.set_level(logging.INFO, logger="lfcam.progress")
+    with Progress(4, "process", unit="capture", stream=io.StringIO()) as p:
+        p.step("a.png done")
+        p.skip()  # complete already: not counted in the total any more
+        p.step("b.png done")
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 2
+    assert lines[0].startswith("process 1/4 a.png done (")
+    assert lines[1].startswith("process 2/3 b.png done (")
+    assert all("s elapsed" in m and "capture/s)" in m for m in lines)
+    caplog.clear()
+    with Progress(2, "x", quiet=True, stream=io.StringIO()) as p:
+        p.step("a")
+    assert not caplog.records

@@ -7,6 +7,7 @@ argument), 1 an unexpected internal error.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 import time
@@ -369,6 +370,7 @@ def _add_process(sub: Any) -> None:
             "lfcam process capture.png -c camera.lfcal -o out/ --superres 2 --refocus 0.8,1.5",
             "lfcam process capture.png -c camera.lfcal -o out/ --mesh --novel-view 0.01,0,0",
             "lfcam process captures/ -c camera.lfcal -o out/ --frame full --overwrite",
+            "lfcam process captures/ -c camera.lfcal -o out/ --cluster slurm:4",
         ],
         help="depth (and more) for raw captures",
         description=(
@@ -397,7 +399,32 @@ def _add_process(sub: Any) -> None:
         "-o", "--output", type=Path, required=True, metavar="OUT_DIR", help="output folder"
     )
     p.add_argument(
-        "--jobs", type=int, default=1, metavar="N", help="captures processed in parallel"
+        "--jobs",
+        type=int,
+        default=1,
+        metavar="N",
+        help="captures processed in parallel on this machine",
+    )
+    p.add_argument(
+        "--cluster",
+        metavar="WHERE",
+        help="run on a Dask cluster (needs lfcam[dask]): a scheduler's address "
+        "(tcp://HOST:8786), local:N (N local worker processes), or slurm[:JOBS], pbs, sge, "
+        "lsf, htcondor (batch jobs of workers through dask-jobqueue, see --cluster-config)",
+    )
+    p.add_argument(
+        "--cluster-config",
+        type=Path,
+        metavar="YAML",
+        help="Dask configuration for --cluster slurm etc. (jobqueue: slurm: cores: ...; "
+        "default: Dask's own, ~/.config/dask/jobqueue.yaml)",
+    )
+    p.add_argument(
+        "--cluster-timeout",
+        type=float,
+        default=10.0,
+        metavar="S",
+        help="seconds to wait for the scheduler to answer (default 10)",
     )
     p.add_argument("--save-views", action="store_true", help="also write the rectified views")
     p.add_argument(
@@ -481,25 +508,43 @@ def _cmd_process(args: argparse.Namespace) -> int:
         overwrite=args.overwrite,
         frame=args.frame,
     )
-    bars: list[Progress] = []
+    if args.cluster is not None and args.jobs != 1:
+        raise InputError("--jobs: not with --cluster (the cluster's workers run the captures)")
+    if not args.cluster_timeout > 0:
+        raise InputError(f"--cluster-timeout: must be > 0, got {args.cluster_timeout}")
 
-    def progress(outcome: Any, finished: int, total: int) -> None:
-        if not bars:  # the total is known once the folder is scanned
-            bars.append(_progress(args, total, "process", unit="capture"))
-        bars[0].step(f"{outcome.source} {outcome.status}")
+    with contextlib.ExitStack() as stack:
+        client = None
+        if args.cluster is not None:
+            from .batch.cluster import cluster_client
 
-    try:
+            client = stack.enter_context(
+                cluster_client(
+                    args.cluster, config=args.cluster_config, timeout=args.cluster_timeout
+                )
+            )
+            print(f"dask cluster {args.cluster}: dashboard {client.dashboard_link}", flush=True)
+        bars: list[Progress] = []
+        stack.callback(lambda: [bar.close() for bar in bars])
+
+        def progress(outcome: Any, finished: int, total: int) -> None:
+            # Done / total, rate and ETA over the captures that need work.
+            if not bars:  # the total is known once the folder is scanned
+                bars.append(_progress(args, total, "process", unit="capture"))
+            if outcome.status == "skipped":
+                bars[0].skip()
+            else:
+                bars[0].step(f"{outcome.source} {outcome.status}")
+
         summary = process_folder(
             args.input,
             args.calibration,
             args.output,
+            client=client,
             jobs=args.jobs,
             options=options,
             progress=progress,
         )
-    finally:
-        for bar in bars:
-            bar.close()
     done, skipped, failures = summary.done, summary.skipped, summary.failed
     print(
         f"processed {len(done)} capture(s) in {summary.seconds:.1f} s"

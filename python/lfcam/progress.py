@@ -37,7 +37,6 @@ def configure_logging(stream: TextIO | None = None, *, quiet: bool = False) -> N
     handler._lfcam_cli = True  # type: ignore[attr-defined]
     root.addHandler(handler)
     root.setLevel(logging.WARNING if quiet else logging.INFO)
-    root.propagate = False
 
 
 class Progress:
@@ -111,6 +110,14 @@ class Progress:
                 rate,
                 self.unit,
             )
+
+    def skip(self, n: int = 1) -> None:
+        """``n`` steps turned out to need no work (complete already): the total, and so
+        the rate and the time left, count only the others."""
+        self.total = max(self.done, self.total - n)
+        if self._bar is not None:
+            self._bar.total = self.total
+            self._bar.refresh()
 
     def __call__(self, msg: str = "") -> None:
         """One step: a :class:`Progress` is the ``progress=`` callback of long functions."""

@@ -1,8 +1,9 @@
 """A batch: every capture of a folder processed into an output folder that survives
 crashes and concurrent runs (docs/design.md, "Batches").
 
-The captures run in the calling process (``jobs=1``) or in a pool of local worker
-processes (``jobs > 1``, :mod:`lfcam.batch.pool`).
+The captures run in the calling process (``jobs=1``), in a pool of local worker
+processes (``jobs > 1``, :mod:`lfcam.batch.pool`) or on a Dask cluster (``client``,
+:mod:`lfcam.batch.cluster`).
 Before it starts, a batch removes what killed runs left beside its outputs
 (:func:`lfcam.io.lock.remove_stale`); each capture is processed while holding its
 output folder's lock, and a capture whose lock another run holds is left for the end
@@ -78,6 +79,8 @@ def find_captures(
 
     A file ``x.png`` goes to ``OUT/x``; a folder is searched recursively and
     ``IN/a/b.png`` goes to ``OUT/a/b``, leaving out anything inside ``OUT`` itself.
+    Two captures whose output folders are the same, or one inside the other (``IN/a.png``
+    and ``IN/a/b.png``), are an :class:`~lfcam.InputError` naming both.
     """
     out = Path(out_dir)
     items = [inputs] if isinstance(inputs, (str, os.PathLike)) else list(inputs)
@@ -102,11 +105,23 @@ def find_captures(
         tasks += [
             CaptureTask(str(p), str(out / p.relative_to(path).with_suffix(""))) for p in found
         ]
-    seen: dict[str, str] = {}
+    # One output folder inside another would be deleted when the outer one is written.
+    seen: dict[tuple[str, ...], CaptureTask] = {}
     for t in tasks:
-        if t.out in seen:
-            raise InputError(f"{t.source}: has the same output folder as {seen[t.out]} ({t.out})")
-        seen[t.out] = t.source
+        parts = Path(t.out).parts
+        if parts in seen:
+            raise InputError(
+                f"{t.source}: has the same output folder as {seen[parts].source} ({t.out})"
+            )
+        seen[parts] = t
+    for parts, t in seen.items():
+        for n in range(1, len(parts)):
+            outer = seen.get(parts[:n])
+            if outer is not None:
+                raise InputError(
+                    f"{t.source}: its output folder {t.out} is inside that of"
+                    f" {outer.source} ({outer.out}), which writing it would replace"
+                )
     return tasks
 
 
@@ -149,6 +164,7 @@ def process_folder(
     cal: Calibration | str | os.PathLike[str],
     out_dir: str | os.PathLike[str],
     *,
+    client: Any = None,
     jobs: int = 1,
     threads: int | None = None,
     progress: Callable[[CaptureOutcome, int, int], None] | None = None,
@@ -161,7 +177,7 @@ def process_folder(
     :func:`lfcam.outputs.write_capture`, written atomically. Complete folders are
     skipped (unless ``overwrite``); a capture that fails (any exception, or the death
     of the worker process running it) is reported in the summary and the batch goes
-    on. Results do not depend on ``jobs`` or ``threads``.
+    on. Results do not depend on ``client``, ``jobs`` or ``threads``.
 
     Parameters
     ----------
@@ -172,6 +188,9 @@ def process_folder(
         checking its sha256, and what ``result.json`` records.
     out_dir : path-like
         The output folder (made if missing).
+    client : dask.distributed.Client, optional
+        Run the captures on this Dask cluster, one task each (needs ``lfcam[dask]``
+        and a file system the workers share with the caller).
     jobs : int
         Local worker processes; 1 processes the captures in the calling process.
     threads : int, optional
@@ -218,7 +237,8 @@ def process_folder(
     opts.check(calibration)
     tasks = find_captures(inputs, out_dir)
     Path(out_dir).mkdir(parents=True, exist_ok=True)
-    for folder in sorted({str(Path(t.out).parent) for t in tasks}):
+    parents = sorted({str(Path(t.out).parent) for t in tasks})
+    for folder in parents:
         remove_stale(folder)
 
     outcomes: dict[int, CaptureOutcome] = {}
@@ -236,17 +256,34 @@ def process_folder(
         else:
             todo.append(i)
 
-    workers = min(jobs, max(1, len(todo)))
-    nthreads = threads or max(1, (os.cpu_count() or 1) // workers)
-    extra = result_extra(cal_path, sha256, opts, {"jobs": workers, "threads": nthreads})
     cal_arg = calibration if cal_path is None else cal_path
+    runner: Callable[[list[tuple[CaptureTask, bool]]], Iterator[tuple[int, Any]]]
+    if client is not None:
+        from .cluster import cluster_shape, run_on_cluster
+
+        if jobs != 1:
+            raise InputError("jobs: not with a client (the cluster's workers run the captures)")
+        workers, nthreads = cluster_shape(client)
+        extra = result_extra(cal_path, sha256, opts, {"jobs": workers, "threads": nthreads})
+
+        def runner(batch: list[tuple[CaptureTask, bool]]) -> Iterator[tuple[int, Any]]:
+            return run_on_cluster(client, batch, cal_arg, sha256, opts, extra)
+
+    else:
+        workers = min(jobs, max(1, len(todo)))
+        nthreads = threads or max(1, (os.cpu_count() or 1) // workers)
+        extra = result_extra(cal_path, sha256, opts, {"jobs": workers, "threads": nthreads})
+        args = (cal_arg, sha256, opts, extra, nthreads)
+
+        def runner(batch: list[tuple[CaptureTask, bool]]) -> Iterator[tuple[int, Any]]:
+            return _run_local(batch, workers, args)
+
     # Captures whose lock another run holds are tried again at the end, waiting for it.
     busy: list[int] = []
     for wait, batch in ((False, todo), (True, busy)):
         if not batch:
             continue
-        args = (cal_arg, sha256, opts, extra, nthreads)
-        for k, outcome in _run_local([(tasks[i], wait) for i in batch], workers, args):
+        for k, outcome in runner([(tasks[i], wait) for i in batch]):
             i = batch[k]
             if isinstance(outcome, WorkerDied):
                 # Its lock died with it: what it left half-written can go now.
@@ -257,6 +294,9 @@ def process_folder(
                 busy.append(i)
             else:
                 report(i, outcome)
+    # What workers that died left (a cluster runs their tasks again elsewhere).
+    for folder in parents:
+        remove_stale(folder)
 
     ordered = tuple(outcomes[i] for i in range(total))
     return BatchSummary(

@@ -144,7 +144,13 @@ def run_pool(
     def feed(w: _Worker) -> None:
         if queue:
             w.current, task = queue.popleft()
-            w.conn.send((w.current, task))
+            try:
+                w.conn.send((w.current, task))
+            except OSError:
+                # The worker died after its last message: the task goes back to the
+                # queue, and the worker is replaced when its pipe reports the end.
+                queue.appendleft((w.current, task))
+                w.current = None
         else:
             w.current = None
             with contextlib.suppress(OSError):
@@ -167,8 +173,8 @@ def run_pool(
                         ) from None
                     if w.current is not None:
                         yield w.current, WorkerDied(w.proc.exitcode)
-                        if queue:
-                            start()
+                    if queue:
+                        start()
                     continue
                 if kind == "init-error":
                     raise LfcamError(f"a worker process could not start: {payload}")

@@ -80,13 +80,13 @@ def atomic_folder(out: str | os.PathLike[str]) -> Iterator[Path]:
     out.parent.mkdir(parents=True, exist_ok=True)
     with path_lock(out):
         tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+        old: Path | None = None
         try:
             yield tmp
             mode = file_mode()
             for p in tmp.rglob("*"):
                 os.chmod(p, (mode | 0o111) if p.is_dir() else mode)
             os.chmod(tmp, mode | 0o111)
-            old = None
             if out.exists():
                 old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
                 os.replace(out, old / out.name)
@@ -94,6 +94,10 @@ def atomic_folder(out: str | os.PathLike[str]) -> Iterator[Path]:
             if old is not None:
                 shutil.rmtree(old, ignore_errors=True)
         except BaseException:
+            # Interrupted between the two renames: the old folder goes back under its name.
+            if old is not None and not os.path.lexists(out) and (old / out.name).is_dir():
+                os.replace(old / out.name, out)
+                shutil.rmtree(old, ignore_errors=True)
             shutil.rmtree(tmp, ignore_errors=True)
             raise
 

@@ -37,7 +37,10 @@ def read_file_bytes(path: str | os.PathLike[str], limit: int) -> bytes:
                 raise InputError(f"{p}: not a regular file")
             if st.st_size > limit:
                 raise InputError(f"{p}: {st.st_size} bytes, larger than lfcam reads ({limit})")
-            return fh.read(limit + 1)
+            data = fh.read(limit + 1)
+            if len(data) > limit:  # it grew since fstat
+                raise InputError(f"{p}: more than {limit} bytes, larger than lfcam reads")
+            return data
     except FileNotFoundError:
         raise InputError(f"{p}: no such file") from None
     except IsADirectoryError:

@@ -201,7 +201,8 @@ def read_image(path: str | os.PathLike[str]) -> np.ndarray:
     -----
     The file is read by Python and decoded from memory (``cv2.imdecode``, tifffile),
     never opened by a decoder by name, and the size its header declares is checked
-    before decoding: no file name or content can crash the process (docs/robustness.md).
+    before decoding: no file name or content can crash the process (docs/design.md,
+    "Processing pipeline").
     """
     p = Path(path)
     ext = p.suffix.lower()
