@@ -505,7 +505,7 @@ def test_cluster_task_reason_worded_as_locally(tmp_path, monkeypatch) -> None:
     )
     assert got.status == "failed"
     assert got.reason == (
-        f"{cal}: sha256 {lfcam.io.file_hash(cal)} differs from the batch's calibration ({'0' * 64})"
+        f"{cal}: sha256 {lfcam.io.file_hash(cal)} differs from the expected {'0' * 64}"
     )
 
 
