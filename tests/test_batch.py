@@ -252,6 +252,38 @@ def test_jobs_2_identical_to_jobs_1_bad_capture_reported(small, tmp_path) -> Non
         lfcam.process_folder(inputs, small["cal"], out, sav_views=True)
 
 
+def test_options_checked_and_normalised(small, tmp_path, monkeypatch) -> None:
+    cal = lfcam.Calibration.load(small["cal"])
+    one = small["in"] / "board.png"
+    out = tmp_path / "out"
+    for name, value, message in [
+        ("superres", True, "superres: expected a factor from 1 to 4, got True"),
+        ("interp", "nearest", "interp: expected one of 'bilinear', "),
+        ("interp", None, "interp: expected one of 'bilinear', "),
+        ("refocus", 2.5, "refocus: expected a sequence of distances, got 2.5"),
+        ("refocus", "3", "refocus: expected a sequence of distances, got '3'"),
+        ("refocus", [float("inf")], "refocus: distances must be beyond Z_c"),
+    ]:
+        with pytest.raises(lfcam.InputError) as e:
+            lfcam.process_folder(one, cal, out, **{name: value})
+        assert str(e.value).startswith(message), (name, value)
+    assert not out.exists()
+    # A list of distances is stored as a tuple in the frozen options the workers get.
+    from lfcam.batch import folder
+
+    seen = []
+
+    def record(task, cal, options, extra, **kw):  # type: ignore[no-untyped-def]
+        seen.append(options)
+        return lfcam.batch.CaptureOutcome(task.source, task.out, "done")
+
+    monkeypatch.setattr(folder, "run_capture", record)
+    z = cal.z_c + 1.0
+    lfcam.process_folder(one, cal, out, refocus=[z, int(z) + 2])
+    assert [o.refocus for o in seen] == [(z, float(int(z) + 2))]
+    assert all(type(v) is float for v in seen[0].refocus)
+
+
 def test_worker_killed_mid_batch(small, tmp_path) -> None:
     """A worker SIGKILLed while it holds a capture's lock: that capture is reported,
     nothing half-written is left, the rest complete."""
@@ -437,6 +469,44 @@ def dask_client():
         distributed.Client(cluster) as client,
     ):
         yield client
+
+
+def test_cluster_without_workers_is_an_input_error() -> None:
+    """A fresh scheduler (dask-jobqueue jobs still queued): no worker joins in time."""
+    distributed = pytest.importorskip("distributed")
+    from lfcam.batch.cluster import cluster_shape
+
+    with (
+        distributed.LocalCluster(n_workers=0, processes=False, dashboard_address=":0") as cluster,
+        distributed.Client(cluster) as client,
+    ):
+        t0 = time.monotonic()
+        with pytest.raises(lfcam.InputError) as e:
+            cluster_shape(client, 1.0)
+        assert time.monotonic() - t0 < 10
+        assert str(e.value) == (
+            f"cluster LocalCluster at {cluster.scheduler_address}: no Dask worker joined"
+            " within 1 s (are its jobs still waiting in the queue?)"
+        )
+        cluster.scale(1)
+        assert cluster_shape(client, 60.0) == (1, max(1, os.cpu_count() or 1))
+
+
+def test_cluster_task_reason_worded_as_locally(tmp_path, monkeypatch) -> None:
+    """A worker that cannot load the calibration says why as the local pool would."""
+    from lfcam.batch import cluster
+    from lfcam.batch.task import CaptureTask, ProcessOptions
+
+    cal = tmp_path / "cam.lfcal"
+    cal.write_bytes(b"not the batch's")
+    monkeypatch.setattr(cluster, "_setup_worker", lambda: (1, 1))
+    got = cluster._cluster_task(
+        CaptureTask("a.png", str(tmp_path / "a")), str(cal), "0" * 64, ProcessOptions(), {}, False
+    )
+    assert got.status == "failed"
+    assert got.reason == (
+        f"{cal}: sha256 {lfcam.io.file_hash(cal)} differs from the expected {'0' * 64}"
+    )
 
 
 def test_cluster_identical_to_jobs_1_calibration_once(small, dask_client, tmp_path) -> None:

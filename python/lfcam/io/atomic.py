@@ -16,19 +16,14 @@ import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
-
-import numpy as np
 
 from ..errors import InputError
-from .images import WRITABLE_EXTENSIONS, write_image
 from .lock import path_lock
 
 __all__ = [
     "atomic_folder",
     "atomic_output",
     "file_mode",
-    "write_image_atomic",
     "write_text_atomic",
 ]
 
@@ -100,16 +95,6 @@ def atomic_folder(out: str | os.PathLike[str]) -> Iterator[Path]:
                 shutil.rmtree(old, ignore_errors=True)
             shutil.rmtree(tmp, ignore_errors=True)
             raise
-
-
-def write_image_atomic(path: str | os.PathLike[str], img: np.ndarray, **kw: Any) -> None:
-    """:func:`~lfcam.io.images.write_image` to a temporary name beside ``path``, then
-    rename."""
-    p = Path(path)
-    if p.suffix.lower() not in WRITABLE_EXTENSIONS:
-        raise InputError(f"{p}: unsupported output type {p.suffix!r} (use .png, .tif or .tiff)")
-    with atomic_output(p) as tmp:
-        write_image(tmp, img, **kw)
 
 
 def write_text_atomic(path: str | os.PathLike[str], text: str) -> None:
