@@ -17,6 +17,7 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import lfcam
@@ -177,6 +178,11 @@ def test_pool_reports_a_dead_worker_and_goes_on() -> None:
         list(run_pool([1, 2], 2, _bad_init, (), _work))
 
 
+def _init_then_exit(x: int) -> int:
+    threading.Timer(0.1, os._exit, (0,)).start()  # dies soon after it says it is ready
+    return x
+
+
 def test_pool_worker_dead_before_its_next_task(monkeypatch) -> None:
     """A task sent to a worker that has just died is run by its replacement."""
     from lfcam.batch import pool
@@ -191,6 +197,9 @@ def test_pool_worker_dead_before_its_next_task(monkeypatch) -> None:
     monkeypatch.setattr(pool, "wait", slow_wait)
     results = dict(run_pool([0, 1, 2, 3], 1, _init, (10,), _work_then_exit))
     assert results == {k: 10 * k for k in range(4)}
+    # Workers that never live to take a task: an error, not an endless restart.
+    with pytest.raises(LfcamError, match="worker processes keep dying before they get a task"):
+        list(run_pool([0, 1], 1, _init_then_exit, (10,), _work))
 
 
 # ---------------------------------------------------------------------------
@@ -282,6 +291,35 @@ def test_options_checked_and_normalised(small, tmp_path, monkeypatch) -> None:
     lfcam.process_folder(one, cal, out, refocus=[z, int(z) + 2])
     assert [o.refocus for o in seen] == [(z, float(int(z) + 2))]
     assert all(type(v) is float for v in seen[0].refocus)
+
+
+def test_capture_read_once_and_unreadable_exif_only_warns(small, tmp_path, monkeypatch) -> None:
+    """Pixels and EXIF come from one read of the file; EXIF that exifread cannot parse
+    leaves the metadata unknown, and the capture is processed."""
+    exifread = pytest.importorskip("exifread")
+    from lfcam.io import images, raw, read_image, write_image
+
+    tif = tmp_path / "board.tif"
+    write_image(tif, read_image(small["in"] / "board.png"))
+
+    def broken(*args, **kw):  # type: ignore[no-untyped-def]
+        raise IndexError("list index out of range")
+
+    def again(path, limit):  # type: ignore[no-untyped-def]
+        raise AssertionError(f"{path} read a second time")
+
+    monkeypatch.setattr(exifread, "process_file", broken)
+    monkeypatch.setattr(images, "read_file_bytes", again)
+    monkeypatch.setattr(raw, "read_file_bytes", again)
+    with pytest.warns(lfcam.LfcamWarning, match=r"board\.tif: unreadable EXIF metadata"):
+        summary = lfcam.process_folder(tif, small["cal"], tmp_path / "out")
+    monkeypatch.undo()
+    assert summary.failed == ()
+    assert summary.done == (str(tif),)
+    result = json.loads((tmp_path / "out" / "board" / "result.json").read_text())
+    assert result["capture"]["focal_length_mm"] is None
+    ref = read_image(small["ref"] / "board" / "depth.tiff")
+    np.testing.assert_array_equal(read_image(tmp_path / "out" / "board" / "depth.tiff"), ref)
 
 
 def test_worker_killed_mid_batch(small, tmp_path) -> None:
