@@ -488,7 +488,10 @@ def test_cli_case(case: str, ctx: Ctx, tmp_path: Path, capsys: pytest.CaptureFix
     build, code = CLI_CASES[case]
     argv, words = build(ctx, tmp_path)
     before = _files(tmp_path)
-    got = main(argv)
+    try:
+        got = main(argv)
+    except SystemExit as exc:  # argparse's usage errors
+        got = exc.code
     err = capsys.readouterr().err
     assert got == code, err
     for w in words:
