@@ -20,6 +20,7 @@ from lfcam.pipeline import CaptureResult, process_capture
 from lfcam.processing import (
     DepthParams,
     DepthResult,
+    RefineParams,
     TriangulationParams,
     TriangulationResult,
     depth_from_views,
@@ -51,6 +52,7 @@ __all__ = [
     "LightField",
     "Mesh",
     "NumericalError",
+    "RefineParams",
     "RenderResult",
     "SimConfig",
     "SimulationResult",
