@@ -522,7 +522,7 @@ def superres_2x(size: str) -> Case:
         return cv2.resize(np.nan_to_num(ref), (2 * rw, 2 * rh), interpolation=cv2.INTER_CUBIC)
 
     return Case(
-        lfcam=lambda: lfcam.super_resolve(raw, cal, s, 2),
+        lfcam=lambda: lfcam.super_resolve(raw, cal, parallax=s, factor=2),
         reference=bicubic,
         reference_name="cv2.resize bicubic x2 of the reference view (no SR)",
         shape=f"12 views {rw}x{rh} -> {2 * rw}x{2 * rh}",

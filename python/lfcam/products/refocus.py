@@ -20,9 +20,9 @@ from .superres import (
     SuperResParams,
     fill_holes,
     inverse_maps,
-    parallax_map,
     place_raw_samples,
     raw_samples,
+    resolve_parallax,
     shift_and_add,
 )
 
@@ -177,8 +177,10 @@ def refocus(
 def all_in_focus(
     frames: ArrayLike,
     cal: Calibration,
-    depth: DepthResult | ArrayLike,
+    depth: DepthResult | None = None,
     *,
+    parallax: ArrayLike | None = None,
+    depth_m: ArrayLike | None = None,
     sigma: float = 0.35,
 ) -> NDArray[np.float32]:
     """All-in-focus image: every sample goes to the reference point it shows
@@ -193,8 +195,12 @@ def all_in_focus(
         As in :func:`refocus`.
     cal : Calibration
         The camera.
-    depth : DepthResult or (H_rect, W_rect) array
-        Depth result or parallax ``s``.
+    depth : DepthResult, optional
+        The capture's depth result. Or, by keyword, exactly one of ``parallax``
+        (``s`` per rectified pixel) and ``depth_m`` (metres); an array passed as
+        ``depth`` is refused, never guessed.
+    parallax, depth_m : (H_rect, W_rect) array, optional
+        See ``depth``.
     sigma : float
         Splat kernel, px.
 
@@ -202,7 +208,7 @@ def all_in_focus(
     -------
     (H_rect, W_rect, C) float32
     """
-    s = parallax_map(depth, cal)
+    s = resolve_parallax(cal, depth, parallax=parallax, depth_m=depth_m)
     H, W = (int(x) for x in cal.rect_shape)
     robust = SuperResParams.robust_iterations
     if _is_raw(frames, cal):

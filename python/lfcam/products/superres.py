@@ -199,14 +199,70 @@ def _sample_factors(cal: Calibration, dtype: np.dtype) -> NDArray[np.float32]:
     return factors
 
 
-def parallax_map(depth: DepthResult | ArrayLike, cal: Calibration) -> NDArray[np.float32]:
+def parallax_map(
+    depth: DepthResult | ArrayLike, cal: Calibration, name: str = "depth"
+) -> NDArray[np.float32]:
+    """The parallax ``s`` of a :class:`DepthResult` or of an ``s`` array, checked
+    against the rectified frame (low-level: :func:`resolve_parallax` is the public way)."""
     s = depth.parallax if isinstance(depth, DepthResult) else np.asarray(depth)
     if s.shape != tuple(cal.rect_shape):
         raise InputError(
-            f"depth: parallax of shape {s.shape} does not match the rectified frame"
+            f"{name}: parallax of shape {s.shape} does not match the rectified frame"
             f" {tuple(cal.rect_shape)}"
         )
     return np.ascontiguousarray(s, np.float32)
+
+
+def resolve_parallax(
+    cal: Calibration,
+    depth: DepthResult | None = None,
+    *,
+    parallax: ArrayLike | None = None,
+    depth_m: ArrayLike | None = None,
+) -> NDArray[np.float32]:
+    """The parallax ``s`` map from exactly one of a depth result, ``parallax=`` or
+    ``depth_m=``; an array passed as ``depth`` is refused rather than guessed.
+
+    ``depth_m`` (metres, metric calibrations) is converted by inverting
+    ``Z = Z_c + (Z_b - Z_c) / (1 - s)``: ``s = 1 - (Z_b - Z_c) / (Z - Z_c)`` (NaN for
+    ``Z <= Z_c`` or unknown ``Z``).
+
+    Examples
+    --------
+    The depth at the reference distance ``Z_b`` has parallax 0:
+
+    >>> from types import SimpleNamespace
+    >>> cal = SimpleNamespace(rect_shape=(1, 2), metric=True, z_b=1.0, z_c=0.05)
+    >>> resolve_parallax(cal, depth_m=[[1.0, 0.525]])
+    array([[ 0., -1.]], dtype=float32)
+    """
+    given = [
+        k
+        for k, v in (("depth", depth), ("parallax", parallax), ("depth_m", depth_m))
+        if v is not None
+    ]
+    if len(given) != 1:
+        raise InputError(
+            "depth: give exactly one of a depth result (lfcam.DepthResult, positional),"
+            f" parallax= (s) or depth_m= (metres); got {', '.join(given) or 'none'}"
+        )
+    if depth is not None:
+        if not isinstance(depth, DepthResult):
+            raise InputError(
+                f"depth: expected a DepthResult (from lfcam.estimate_depth or"
+                f" process_capture(...).depth), got {type(depth).__name__}; pass a map"
+                " by keyword: parallax=s, or depth_m=Z in metres"
+            )
+        return parallax_map(depth, cal)
+    if parallax is not None:
+        return parallax_map(parallax, cal, "parallax")
+    if not cal.metric:
+        raise InputError("depth_m: the calibration is relative (no Z_c): pass parallax= instead")
+    z = np.asarray(depth_m, np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = 1.0 - (cal.z_b - cal.z_c) / (z - cal.z_c)
+    s = np.where(z > cal.z_c, s, np.nan)
+    return parallax_map(s, cal, "depth_m")
 
 
 def place_raw_samples(
@@ -466,9 +522,11 @@ def _hole_tiles(
 def super_resolve(
     raw: ArrayLike,
     cal: Calibration,
-    depth: DepthResult | ArrayLike,
+    depth: DepthResult | None = None,
     factor: int = 2,
     *,
+    parallax: ArrayLike | None = None,
+    depth_m: ArrayLike | None = None,
     params: SuperResParams | None = None,
     views: ArrayLike | None = None,
 ) -> NDArray[np.float32]:
@@ -480,10 +538,15 @@ def super_resolve(
         The capture (uint8, uint16 or float32; Bayer frames are demosaiced).
     cal : Calibration
         The camera.
-    depth : DepthResult or (H_rect, W_rect) array
-        The capture's depth (:func:`lfcam.estimate_depth`) or its parallax ``s``.
+    depth : DepthResult, optional
+        The capture's depth (:func:`lfcam.estimate_depth`). Or, by keyword, exactly
+        one of ``parallax`` and ``depth_m``; an array passed here is refused.
     factor : int
         ``r``, 1 to 4.
+    parallax : (H_rect, W_rect) array, optional
+        The parallax ``s`` per rectified pixel.
+    depth_m : (H_rect, W_rect) array, optional
+        Depth in metres (metric calibrations), converted to ``s``.
     params : SuperResParams, optional
         Tuning (defaults: :class:`SuperResParams`).
     views : sequence of int, optional
@@ -499,20 +562,23 @@ def super_resolve(
     ------
     InputError
         Naming the argument: wrong factor, raw of another size, parallax of another
-        shape, view indices out of range.
+        shape, an array as ``depth`` or not exactly one of ``depth``, ``parallax``,
+        ``depth_m``, view indices out of range.
 
     Examples
     --------
     >>> res = lfcam.process_capture("capture.png", cal)       # doctest: +SKIP
     >>> sr = lfcam.super_resolve(raw, cal, res.depth, factor=2)  # doctest: +SKIP
+    >>> sr = lfcam.super_resolve(raw, cal, depth_m=z, factor=2)  # doctest: +SKIP
     """
     p = params or SuperResParams()
     if not isinstance(factor, (int, np.integer)) or not (1 <= int(factor) <= 4):
         raise InputError(f"factor: expected an integer from 1 to 4, got {factor!r}")
     r = int(factor)
+    s = resolve_parallax(cal, depth, parallax=parallax, depth_m=depth_m)
     values = raw_samples(raw, cal)
     positions = place_raw_samples(
-        cal, depth, iterations=p.place_iterations, tolerance=p.place_tolerance
+        cal, s, iterations=p.place_iterations, tolerance=p.place_tolerance
     )
     weights = None
     if views is not None:
