@@ -19,6 +19,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from .._validate import check_path
 from ..errors import InputError
 from .atomic import atomic_output
 from .files import (
@@ -197,6 +198,7 @@ def read_image(path: str | os.PathLike[str], *, data: bytes | None = None) -> np
     before decoding: no file name or content can crash the process (docs/design.md,
     "Processing pipeline").
     """
+    check_path(path, "path")
     p = Path(path)
     ext = p.suffix.lower()
     if ext not in IMAGE_EXTENSIONS:

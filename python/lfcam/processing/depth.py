@@ -17,6 +17,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from .._validate import check_instance
 from ..calibration import Calibration
 from ..errors import InputError
 from ..kernels.flow import FlowParams, dis_flow, prepare
@@ -35,6 +36,10 @@ __all__ = [
     "estimate_depth",
     "near_views",
 ]
+
+#: Smallest view width or height depth accepts, px (OpenCV's DIS optical flow refuses
+#: images under 12 px a side).
+MIN_VIEW_SIDE = 16
 
 #: DIS parameters for depth: fine patches, a dense stride and four variational
 #: refinement iterations (docs/tuning.md, "Depth").
@@ -429,6 +434,15 @@ def depth_from_views(
     views = np.asarray(views)
     if views.ndim not in (3, 4) or views.shape[0] < 2:
         raise InputError(f"views: expected (N, H, W[, C]) with N >= 2, got shape {views.shape}")
+    if views.dtype.kind not in "fiu":
+        raise InputError(f"views: expected real numbers, got dtype {views.dtype}")
+    if min(views.shape[1:3]) < MIN_VIEW_SIDE:
+        raise InputError(
+            f"views: each view is {views.shape[2]} x {views.shape[1]} px; optical flow needs "
+            f"at least {MIN_VIEW_SIDE} px a side"
+        )
+    if isinstance(reference, (bool, np.bool_)) or not isinstance(reference, (int, np.integer)):
+        raise InputError(f"reference: expected a view index (an integer), got {reference!r}")
     if views.dtype != np.float32:
         views = views.astype(np.float32)
     offsets = np.asarray(offsets, np.float64)
@@ -572,6 +586,8 @@ def estimate_depth(
         With ``depth`` in metres (metric calibrations) or ``relative``
         (``t = s Z_c / Z_b``, triangulated against ``d_i``) otherwise.
     """
+    check_instance(cal, Calibration, "cal")
+    views = np.asarray(views)
     if views.shape[0] != cal.n_views or tuple(views.shape[1:3]) != tuple(cal.rect_shape):
         raise InputError(
             f"views: shape {views.shape} does not match the calibration"
