@@ -23,6 +23,7 @@ from ..errors import InputError
 from ..kernels.flow import FlowParams, dis_flow, prepare
 from ..kernels.warp import identity_grid, remap_bilinear
 from .fill import FILL_MAX_RESIDUAL, FILL_MIN_USED, fill_parallax, guide_image, unsure
+from .refine import RefineParams, refine_parallax
 from .triangulate import MAX_VIEWS, TriangulationParams, TriangulationResult, triangulate
 
 __all__ = [
@@ -94,6 +95,9 @@ class DepthParams:
     #: second triangulation over the near views (``|o_i| <= max |o_j| / 2``) where that
     #: one is sure, when there are at least this many near views besides the reference.
     near_views_min: int = 24
+    #: Refine the parallax by a plane sweep along the parallax lines over all views
+    #: (:mod:`lfcam.processing.refine`); None: off.
+    refine: RefineParams | None = None
 
     def __post_init__(self) -> None:
         positive = ("flow_max_pixels", "flow_margin", "flow_sigma", "fb_threshold")
@@ -107,6 +111,10 @@ class DepthParams:
             raise InputError(f"params.fill_min_used: expected 0 .. 1, got {self.fill_min_used!r}")
         if self.flow is not None and not isinstance(self.flow, FlowParams):
             raise InputError(f"params.flow: expected a FlowParams, got {type(self.flow).__name__}")
+        if self.refine is not None and not isinstance(self.refine, RefineParams):
+            raise InputError(
+                f"params.refine: expected a RefineParams or None, got {type(self.refine).__name__}"
+            )
 
     def flow_for(self, n_pixels: int) -> FlowParams:
         """The flow's parameters for a window of ``n_pixels``: ``flow`` if given, else
@@ -142,6 +150,9 @@ class DepthResult:
     filled : (H, W) bool or None
         Pixels whose parallax comes from :func:`fill_parallax` (unconfident
         triangulations, occlusion bands), not from their own triangulation.
+    swept : (H, W) bool or None
+        With :attr:`DepthParams.refine`: pixels whose parallax comes from the plane
+        sweep (there ``confidence`` is the sweep's).
     timings : dict
         Seconds per stage.
     """
@@ -154,6 +165,7 @@ class DepthResult:
     depth: np.ndarray | None = None
     relative: np.ndarray | None = None
     filled: np.ndarray | None = None
+    swept: np.ndarray | None = None
     timings: dict[str, float] = field(default_factory=dict)
 
 
@@ -491,6 +503,15 @@ def depth_from_views(
             sigma_colour=p.fill_sigma_colour,
         )
         timings["fill"] = time.perf_counter() - t2
+    swept = None
+    if p.refine is not None:
+        t3 = time.perf_counter()
+        ref = refine_parallax(
+            views[(slice(None), *win)], offsets, int(reference), parallax, p.refine
+        )
+        parallax, swept = ref.parallax, ref.swept
+        confidence = np.where(swept, ref.confidence, confidence).astype(np.float32)
+        timings["refine"] = time.perf_counter() - t3
     shape = views.shape[1:3]
     return DepthResult(
         parallax=_paste(parallax, win, shape, np.nan),
@@ -499,6 +520,7 @@ def depth_from_views(
         perpendicular=_paste(out["perpendicular"], win, shape, np.nan),
         n_used=_paste(out["n_used"], win, shape, 0),
         filled=None if filled is None else _paste(filled, win, shape, False),
+        swept=None if swept is None else _paste(swept, win, shape, False),
         timings=timings,
     )
 
