@@ -84,6 +84,18 @@ def _add_simulate(sub: Any) -> None:
     )
     p.add_argument("--scenes", help="comma-separated scenes: planes, spheres, layered, board")
     p.add_argument("--distances", type=_floats, help="board distances in metres, e.g. 0.8,1,1.25")
+    p.add_argument(
+        "--board-tilt",
+        type=float,
+        metavar="DEG",
+        help="tilt each calibration board by a random angle of up to DEG degrees (seeded)",
+    )
+    p.add_argument(
+        "--board-drift",
+        type=float,
+        metavar="MM",
+        help="move each calibration board sideways by up to MM millimetres (seeded)",
+    )
     p.add_argument("--captures", type=int, help="board captures per distance (default 5)")
     p.add_argument("--no-truth", action="store_true", help="skip the ground truth")
     p.add_argument("--overwrite", action="store_true", help="replace a non-empty out_dir")
@@ -96,7 +108,8 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     changes: dict[str, Any] = {}
     if args.full_size:
         changes["view_size"] = (1200, 900)
-    for key in ("seed", "grid", "view_size", "bit_depth", "bayer", "raw_format", "distances"):
+    keys = ("seed", "grid", "view_size", "bit_depth", "bayer", "raw_format", "distances")
+    for key in (*keys, "board_tilt", "board_drift"):
         value = getattr(args, key)
         if value is not None:
             changes[key] = value

@@ -112,7 +112,9 @@ def simulate(
         calibration/board_<d>m/board_NN.png   pattern captures per distance
         captures/<scene>.png                  raw scene captures (.tiff, .dng: raw_format)
         truth/camera.npz                      crops, centres, warps, masks, offsets,
-                                              z_b, z_c, b, l, f, D, g, ...
+                                              z_b, z_c, b, l, f, D, g, board_poses
+                                              (per distance: tilts about x, y in
+                                              degrees, drift x, y in metres), ...
         truth/<scene>/depth.tiff              depth (metres) in the reference
                                               view's rectified frame
         truth/<scene>/labels.png              surface labels (0 none, 1 background)
@@ -188,11 +190,12 @@ def simulate(
         timings["white"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
-        for z in cfg.distances:
+        poses = cam.board_poses()
+        for z, pose in zip(cfg.distances, poses):
             say(f"board at {z:g} m")
             folder = cal / f"board_{z:.2f}m"
             folder.mkdir()
-            clean = renderer.render(Scene("board", [_board_plane(cam, z)]))
+            clean = renderer.render(Scene("board", [_board_plane(cam, z, pose)]))
             for k in range(cfg.captures_per_distance):
                 _write_raw(folder / f"board_{k:02d}.{ext}", add_noise(clean, cfg, rng), cam)
         timings["boards"] = time.perf_counter() - t0
@@ -241,6 +244,7 @@ def simulate(
                 z_b=np.array(cam.z_b),
                 z_c=np.array(cam.z_c),
                 distances=np.array(cfg.distances),
+                board_poses=poses,
                 b=cam.b,
                 l=cam.l,
                 f=np.array(cam.f),
