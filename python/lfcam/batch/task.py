@@ -19,7 +19,7 @@ from ..calibration import Calibration
 from ..errors import InputError, LfcamError
 from ..io.lock import LockBusy, path_lock
 from ..kernels import INTERPOLATIONS
-from ..outputs import NovelViewOptions, write_capture
+from ..outputs import FRAMES, NovelViewOptions, write_capture
 from ..pipeline import process_capture
 
 __all__ = [
@@ -53,6 +53,9 @@ class ProcessOptions:
         Redo captures whose output folder is complete (else they are skipped).
     interp : str
         Rectification resampling.
+    frame : {'valid', 'full'}
+        The image outputs' frame (:func:`lfcam.outputs.output_frame`): cut to the
+        reference view's valid box, or the calibration's whole rectified frame.
     """
 
     save_views: bool = False
@@ -61,10 +64,13 @@ class ProcessOptions:
     novel: NovelViewOptions | None = None
     overwrite: bool = False
     interp: str = "bilinear"
+    frame: str = "valid"
 
     def check_values(self) -> None:
         """Raise :class:`~lfcam.InputError` naming a malformed option (no calibration
         needed: checked before one is loaded)."""
+        if self.frame not in FRAMES:
+            raise InputError(f"frame: expected one of {', '.join(FRAMES)}, got {self.frame!r}")
         if self.superres is not None and not (
             isinstance(self.superres, int)
             and not isinstance(self.superres, bool)
@@ -196,6 +202,7 @@ def run_capture(
                 extra=extra,
                 save_views=options.save_views,
                 novel=options.novel,
+                frame=options.frame,
             )
         return outcome("done", timings=dict(res.timings))
     except LockBusy:

@@ -5,7 +5,7 @@ calibration file's HDF5 layout lives with the :class:`~lfcam.Calibration` type).
 
 from .atomic import atomic_folder, atomic_output, write_text_atomic
 from .checksum import file_hash
-from .display import colour_depth, encode_u8, encode_u16, rgb_u8
+from .display import colour_depth, encode_u8, encode_u16, rgb_u8, srgb_decode, srgb_encode
 from .files import read_file_bytes
 from .formats import read_flo, read_pfm, write_pfm
 from .images import (
@@ -18,6 +18,7 @@ from .images import (
     is_image_file,
     read_image,
     read_raw,
+    read_tiff_description,
     to_float,
     write_image,
     write_image_atomic,
@@ -48,7 +49,10 @@ __all__ = [
     "read_metadata",
     "read_pfm",
     "read_raw",
+    "read_tiff_description",
     "rgb_u8",
+    "srgb_decode",
+    "srgb_encode",
     "to_float",
     "write_dng",
     "write_image",

@@ -8,14 +8,18 @@ float32 goes to TIFF.
 from __future__ import annotations
 
 import io
+import json
 import os
 import struct
+import zlib
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 
+from .._validate import check_path
 from ..errors import InputError
 from .atomic import atomic_output
 from .files import (
@@ -38,6 +42,7 @@ __all__ = [
     "is_image_file",
     "read_image",
     "read_raw",
+    "read_tiff_description",
     "to_float",
     "write_image",
     "write_image_atomic",
@@ -193,6 +198,7 @@ def read_image(path: str | os.PathLike[str], *, data: bytes | None = None) -> np
     before decoding: no file name or content can crash the process (docs/design.md,
     "Processing pipeline").
     """
+    check_path(path, "path")
     p = Path(path)
     ext = p.suffix.lower()
     if ext not in IMAGE_EXTENSIONS:
@@ -219,31 +225,113 @@ def read_image(path: str | os.PathLike[str], *, data: bytes | None = None) -> np
     return np.ascontiguousarray(img)
 
 
-def write_image(path: str | os.PathLike[str], img: np.ndarray, *, compression: int = 3) -> None:
-    """Write ``img`` (grey or RGB; uint8/uint16 to PNG or TIFF, float32 to TIFF)."""
+def write_image(
+    path: str | os.PathLike[str],
+    img: np.ndarray,
+    *,
+    compression: int = 3,
+    srgb: bool = False,
+    description: Mapping[str, Any] | None = None,
+) -> None:
+    """Write ``img`` (grey or RGB; uint8/uint16 to PNG or TIFF, float32 to TIFF).
+
+    Parameters
+    ----------
+    path : path-like
+        ``.png``, ``.tif`` or ``.tiff``.
+    img : (H, W) or (H, W, 3) array
+        The pixels, RGB order.
+    compression : int
+        Deflate level, 0 (none) to 9: PNG, and TIFF (zlib compression).
+    srgb : bool
+        PNG only: the values are sRGB-encoded (:func:`lfcam.io.encode_u8`); the file
+        says so with an ``sRGB`` chunk (perceptual intent) and the matching ``gAMA``
+        (1/2.2) for readers that only know gamma.
+    description : mapping, optional
+        TIFF only: stored as JSON in the ImageDescription tag (what the values are:
+        quantity, unit, frame); read it back with :func:`read_tiff_description`.
+    """
     p = Path(path)
     ext = p.suffix.lower()
     if ext not in WRITABLE_EXTENSIONS:
         raise InputError(f"{p}: unsupported output type {p.suffix!r} (use .png, .tif or .tiff)")
     img = np.asarray(img)
-    if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] not in (1, 3)):
+    if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] not in (1, 3)) or img.size == 0:
         raise InputError(f"{p}: cannot write an image of shape {img.shape}")
     if ext == ".png":
         if img.dtype not in (np.uint8, np.uint16):
             raise InputError(f"{p}: PNG holds 8 or 16-bit integers, not {img.dtype}")
+        if description is not None:
+            raise InputError(f"{p}: a description is written to TIFFs only")
         arr = img if img.ndim == 2 else img[..., ::-1]
         ok, buf = cv2.imencode(
             ".png", np.ascontiguousarray(arr), [cv2.IMWRITE_PNG_COMPRESSION, compression]
         )
         if not ok:
             raise OSError(f"{p}: could not encode PNG")
-        p.write_bytes(buf.tobytes())
+        data = buf.tobytes()
+        if srgb:
+            data = _png_with_srgb(data)
+        p.write_bytes(data)
     else:
         import tifffile
 
+        if srgb:
+            raise InputError(f"{p}: TIFFs hold linear values; srgb is for PNG previews")
+        text = None if description is None else json.dumps(dict(description), allow_nan=False)
         tifffile.imwrite(
-            p, img, photometric="rgb" if img.ndim == 3 and img.shape[2] == 3 else "minisblack"
+            p,
+            img,
+            photometric="rgb" if img.ndim == 3 and img.shape[2] == 3 else "minisblack",
+            compression="zlib" if compression > 0 else None,
+            compressionargs={"level": compression} if compression > 0 else None,
+            description=text,
+            metadata=None,
         )
+
+
+def read_tiff_description(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """The JSON description :func:`write_image` stored in a TIFF (empty if none).
+
+    Examples
+    --------
+    >>> import numpy as np, tempfile, pathlib
+    >>> p = pathlib.Path(tempfile.mkdtemp()) / "z.tiff"
+    >>> write_image(p, np.ones((2, 3), np.float32), description={"quantity": "depth"})
+    >>> read_tiff_description(p)
+    {'quantity': 'depth'}
+    """
+    import tifffile
+
+    p = Path(path)
+    try:
+        with tifffile.TiffFile(p) as tif:
+            text = tif.pages.first.description
+    except Exception as exc:
+        raise InputError(f"{p}: not a readable TIFF ({exc})") from None
+    if not text:
+        return {}
+    try:
+        value = json.loads(text)
+    except ValueError:
+        return {}
+    return value if isinstance(value, dict) else {}
+
+
+def _png_chunk(kind: bytes, payload: bytes) -> bytes:
+    crc = zlib.crc32(kind + payload) & 0xFFFFFFFF
+    return struct.pack(">I", len(payload)) + kind + payload + struct.pack(">I", crc)
+
+
+def _png_with_srgb(data: bytes) -> bytes:
+    """A PNG with ``sRGB`` (rendering intent 0, perceptual) and ``gAMA`` (45455, the
+    PNG specification's value to accompany sRGB) chunks after IHDR."""
+    # Signature (8 bytes), then IHDR: length (4), type (4), 13 bytes of data, CRC (4).
+    end = 8 + 4 + 4 + 13 + 4
+    if data[12:16] != b"IHDR":
+        raise OSError("PNG encoder wrote no IHDR first")
+    extra = _png_chunk(b"sRGB", b"\x00") + _png_chunk(b"gAMA", struct.pack(">I", 45455))
+    return data[:end] + extra + data[end:]
 
 
 def write_image_atomic(path: str | os.PathLike[str], img: np.ndarray, **kw: Any) -> None:
