@@ -28,6 +28,7 @@ from lfcam.pipeline import CaptureResult, process_capture
 from lfcam.processing import (
     DepthParams,
     DepthResult,
+    RefineParams,
     TriangulationParams,
     TriangulationResult,
     depth_from_views,
@@ -62,6 +63,7 @@ __all__ = [
     "Mesh",
     "NumericalError",
     "ProcessOptions",
+    "RefineParams",
     "RenderResult",
     "SimConfig",
     "SimulationResult",

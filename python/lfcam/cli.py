@@ -8,12 +8,13 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import math
 import os
 import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 from .errors import CalibrationError, InputError, LfcamError
 from .progress import Progress, configure_logging
@@ -21,6 +22,26 @@ from .progress import Progress, configure_logging
 EXIT_OK = 0
 EXIT_INTERNAL = 1
 EXIT_INPUT = 2
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with a one-line usage error naming the argument (exit 2)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(EXIT_INPUT, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _check_output_folder(path: Path, flag: str) -> None:
+    """Refuse an output folder that cannot be made or written, before any long work."""
+    if path.exists() and not path.is_dir():
+        raise InputError(f"{flag} {path}: exists and is not a folder")
+    parent = path
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise InputError(f"{flag} {path}: {parent} is a file, not a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError(f"{flag} {path}: {parent} is not writable")
 
 
 def _pair(text: str, sep: str, name: str, form: str) -> tuple[int, int]:
@@ -293,6 +314,8 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
         raise InputError(f"{out}: exists (use --overwrite to replace it)")
     if not out.parent.is_dir():
         raise InputError(f"{out}: folder {out.parent} does not exist")
+    if not os.access(out.parent, os.W_OK | os.X_OK):
+        raise InputError(f"{out}: folder {out.parent} is not writable")
     steps = ["layout", "scale", "warp", "depth"]
     t0 = time.perf_counter()
     with _progress(args, len(steps) + 3, "calibrate") as bar:
@@ -360,6 +383,10 @@ def _cmd_info(args: argparse.Namespace) -> int:
 # lfcam process
 # ---------------------------------------------------------------------------
 EXIT_PARTIAL = 3
+#: Most processes ``--jobs`` may start, and most ``--orbit`` frames (two minutes of
+#: video at 30 frames per second): beyond them a run would not end in reasonable time.
+MAX_JOBS = 256
+MAX_ORBIT_FRAMES = 3600
 
 
 def _add_process(sub: Any) -> None:
@@ -464,6 +491,18 @@ def _add_process(sub: Any) -> None:
     p.set_defaults(func=_cmd_process)
 
 
+def _degenerate_warning(result_json: Path) -> str | None:
+    """The warning for a capture whose ``result.json`` says it is degenerate."""
+    import json
+
+    from .outputs import degenerate_message
+
+    try:
+        return degenerate_message(json.loads(result_json.read_text()))
+    except (OSError, ValueError):
+        return None
+
+
 def _novel_options(args: argparse.Namespace, cal: Any) -> Any:
     """--mesh / --novel-view / --orbit as :class:`lfcam.outputs.NovelViewOptions`."""
     import math
@@ -471,8 +510,8 @@ def _novel_options(args: argparse.Namespace, cal: Any) -> Any:
     from .outputs import NovelViewOptions
     from .products.geometry import parse_pose
 
-    if args.orbit < 0:
-        raise InputError(f"--orbit: must be >= 0, got {args.orbit}")
+    if not 0 <= args.orbit <= MAX_ORBIT_FRAMES:
+        raise InputError(f"--orbit: expected 0 to {MAX_ORBIT_FRAMES} frames, got {args.orbit}")
     pose = None
     if args.novel_view is not None:
         try:
@@ -491,10 +530,13 @@ def _cmd_process(args: argparse.Namespace) -> int:
     from .batch import ProcessOptions, process_folder
     from .calibration import Calibration
 
-    if args.jobs < 1:
-        raise InputError(f"--jobs: must be >= 1, got {args.jobs}")
+    if not 1 <= args.jobs <= MAX_JOBS:
+        raise InputError(f"--jobs: expected 1 to {MAX_JOBS}, got {args.jobs}")
     if args.superres is not None and not (1 <= args.superres <= 4):
         raise InputError(f"--superres: expected a factor from 1 to 4, got {args.superres}")
+    _check_output_folder(args.output, "-o")
+    if args.refocus and not all(math.isfinite(z) and z > 0 for z in args.refocus):
+        raise InputError(f"--refocus: expected finite distances > 0 m, got {list(args.refocus)}")
     cal = Calibration.load(args.calibration)
     if args.refocus and cal.metric:
         bad = [z for z in args.refocus if not z > cal.z_c]
@@ -554,6 +596,10 @@ def _cmd_process(args: argparse.Namespace) -> int:
         + (f", {len(failures)} FAILED" if failures else "")
         + f" -> {args.output}"
     )
+    for o in summary.outcomes:
+        warn = o.status == "done" and _degenerate_warning(Path(o.out) / "result.json")
+        if warn:
+            print(f"lfcam process: warning: {o.source}: {warn}", file=sys.stderr)
     for src, err in failures:
         print(f"  failed: {src}: {err}", file=sys.stderr)
     return EXIT_PARTIAL if failures else EXIT_OK
@@ -615,7 +661,7 @@ def _add_depth_views(sub: Any) -> None:
 
 
 def _cmd_depth_views(args: argparse.Namespace) -> int:
-    from .outputs import write_lightfield
+    from .outputs import degenerate_message, write_lightfield
     from .sim import HCI_BORDER, LightField
 
     out: Path = args.output
@@ -641,6 +687,9 @@ def _cmd_depth_views(args: argparse.Namespace) -> int:
         t3 = time.perf_counter()
         bar.step(f"wrote {out}")
     stats = info["statistics"]
+    warn = degenerate_message(info)
+    if warn:
+        print(f"lfcam depth-views: warning: {args.folder}: {warn}", file=sys.stderr)
     h, w = lf.image_shape
     print(
         f"depth of a {lf.grid_shape[0]}x{lf.grid_shape[1]} light field ({w} x {h} px,"
@@ -809,7 +858,7 @@ class _VersionAction(argparse.Action):
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``lfcam`` argument parser (all subcommands)."""
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="lfcam",
         description="Multiview light-field camera: simulate, calibrate, process.",
         epilog="Each command's --help has examples. docs/design.md describes the method.",
@@ -861,6 +910,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _main(argv: Sequence[str] | None) -> int:
+    for stream in (sys.stdout, sys.stderr):
+        # A file name with bytes that are not UTF-8 is printed escaped, never a crash.
+        reconfigure = getattr(stream, "reconfigure", None)
+        if reconfigure is not None:
+            reconfigure(errors="backslashreplace")
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):

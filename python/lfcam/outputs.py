@@ -41,13 +41,31 @@ from .sim.lightfield import points_from_lightfield
 
 __all__ = [
     "FRAMES",
+    "MIN_COVERAGE",
     "NovelViewOptions",
+    "degenerate_message",
     "output_frame",
     "reference_box",
     "write_capture",
     "write_lightfield",
     "write_novel_views",
 ]
+
+#: A result whose depth covers less than this fraction of the pixels the reference view
+#: sees is degenerate (an all-NaN, black or featureless capture, views too small):
+#: ``result.json`` says ``"degenerate": true`` and the command line warns.
+MIN_COVERAGE = 0.05
+
+
+def degenerate_message(info: dict[str, Any]) -> str | None:
+    """The console warning for a ``result.json`` marked degenerate, else None."""
+    if not info.get("degenerate"):
+        return None
+    cov = info["statistics"]["coverage"]
+    return (
+        f"depth covers {100 * cov:.1f} % of the reference view, below "
+        f"{100 * MIN_COVERAGE:g} %: a degenerate capture (blank, all NaN or too small?)"
+    )
 
 
 @dataclass
@@ -328,6 +346,7 @@ def write_capture(
             "reference": list(cal.reference_rc),
             "timings_s": result.timings,
             "statistics": stats,
+            "degenerate": stats["coverage"] < MIN_COVERAGE,
             **novel_info,
             **(extra or {}),
         }
@@ -481,6 +500,7 @@ def write_lightfield(
         stats["flow_residual_median_px"] = _median(result.residual)
         stats["perpendicular_median_px"] = _median(result.perpendicular)
         info["statistics"] = stats
+        info["degenerate"] = stats["coverage"] < MIN_COVERAGE
         if lf.ground_truth is not None:
             gt_info: dict[str, Any] = {"view": list(lf.ground_truth_view or lf.reference_rc)}
             if lf.ground_truth_view == lf.reference_rc:

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ._validate import check_instance
 from .calibration import Calibration
 from .io import (
     MAX_IMAGE_FILE_BYTES,
@@ -83,6 +84,7 @@ def process_capture(
         ``views`` (rectified), ``depth`` (a :class:`DepthResult`), ``timings``,
         ``metadata`` (the file's focal length, exposure, ISO, aperture, camera).
     """
+    check_instance(cal, Calibration, "cal")
     t0 = time.perf_counter()
     source = None
     metadata = CaptureMetadata()

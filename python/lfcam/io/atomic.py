@@ -72,7 +72,12 @@ def atomic_folder(out: str | os.PathLike[str]) -> Iterator[Path]:
     On any error the temporary folder is removed and ``out`` is left as it was.
     """
     out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):
+        raise InputError(
+            f"{out}: cannot make its folder {out.parent}: a file is in the way"
+        ) from None
     with path_lock(out):
         tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
         old: Path | None = None

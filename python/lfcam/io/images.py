@@ -19,6 +19,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from .._validate import check_path
 from ..errors import InputError
 from .atomic import atomic_output
 from .files import (
@@ -197,6 +198,7 @@ def read_image(path: str | os.PathLike[str], *, data: bytes | None = None) -> np
     before decoding: no file name or content can crash the process (docs/design.md,
     "Processing pipeline").
     """
+    check_path(path, "path")
     p = Path(path)
     ext = p.suffix.lower()
     if ext not in IMAGE_EXTENSIONS:
@@ -254,7 +256,7 @@ def write_image(
     if ext not in WRITABLE_EXTENSIONS:
         raise InputError(f"{p}: unsupported output type {p.suffix!r} (use .png, .tif or .tiff)")
     img = np.asarray(img)
-    if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] not in (1, 3)):
+    if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] not in (1, 3)) or img.size == 0:
         raise InputError(f"{p}: cannot write an image of shape {img.shape}")
     if ext == ".png":
         if img.dtype not in (np.uint8, np.uint16):

@@ -12,6 +12,7 @@ from numpy.typing import ArrayLike, NDArray
 
 import lfcam._lfcam as _lfcam
 
+from .._validate import check_instance
 from ..calibration import Calibration
 from ..errors import InputError
 from ..kernels.warp import identity_grid
@@ -149,6 +150,7 @@ def refocus(
     --------
     >>> img = lfcam.refocus(raw, cal, 0.8)  # doctest: +SKIP
     """
+    check_instance(cal, Calibration, "cal")
     if (depth_m is None) == (parallax is None):
         raise InputError("depth_m: give exactly one of depth_m and parallax")
     if depth_m is not None:
@@ -208,6 +210,7 @@ def all_in_focus(
     -------
     (H_rect, W_rect, C) float32
     """
+    check_instance(cal, Calibration, "cal")
     s = resolve_parallax(cal, depth, parallax=parallax, depth_m=depth_m)
     H, W = (int(x) for x in cal.rect_shape)
     robust = SuperResParams.robust_iterations

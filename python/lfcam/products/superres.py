@@ -24,6 +24,7 @@ from numpy.typing import ArrayLike, NDArray
 
 import lfcam._lfcam as _lfcam
 
+from .._validate import as_int_array, check_instance
 from ..calibration import Calibration
 from ..errors import InputError
 from ..io import demosaic
@@ -94,6 +95,48 @@ class SuperResParams:
     window: int = 1
     step: float = 0.02
     eps: float = 0.01
+
+    def __post_init__(self) -> None:
+        for name, lo, hi in _INT_RANGES:
+            value = getattr(self, name)
+            if (
+                isinstance(value, (bool, np.bool_))
+                or not isinstance(value, (int, np.integer))
+                or not lo <= value <= hi
+            ):
+                raise InputError(f"{name}: expected an integer from {lo} to {hi}, got {value!r}")
+        for name, positive in _FLOATS:
+            value = getattr(self, name)
+            ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
+                value, (bool, np.bool_)
+            )
+            if not (ok and math.isfinite(value) and (value > 0 if positive else value >= 0)):
+                what = "> 0" if positive else ">= 0"
+                raise InputError(f"{name}: expected a finite number {what}, got {value!r}")
+        if self.alpha > 1:
+            raise InputError(f"alpha: expected a number in (0, 1], got {self.alpha!r}")
+
+
+# (name, smallest, largest) of SuperResParams' integers: the largest bound the work.
+_INT_RANGES = (
+    ("kernel_radius", 0, 16),
+    ("robust_iterations", 0, 100),
+    ("place_iterations", 0, 100),
+    ("deblur_iterations", 0, 1000),
+    ("window", 1, 8),
+)
+# (name, must be > 0) of SuperResParams' floats; the others must be >= 0.
+_FLOATS = (
+    ("kernel_sigma", True),
+    ("huber", True),
+    ("reject", True),
+    ("place_tolerance", True),
+    ("psf_sigma", False),
+    ("lam", False),
+    ("alpha", True),
+    ("step", True),
+    ("eps", True),
+)
 
 
 # Inverse maps depend on the calibration only: computed once per Calibration object.
@@ -167,8 +210,15 @@ def raw_samples(raw: ArrayLike, cal: Calibration) -> NDArray[np.float32]:
             f"raw: frame is {arr.shape[1]}x{arr.shape[0]}, the calibration expects"
             f" {cal.raw_shape[1]}x{cal.raw_shape[0]}"
         )
+    if arr.ndim not in (2, 3):
+        raise InputError(f"raw: expected (H, W) or (H, W, C), got shape {arr.shape}")
     if arr.ndim == 2:
         arr = arr[..., None]
+    if arr.shape[2] == 1 and cal.gains.shape[2] != 1:
+        raise InputError(
+            f"raw: one channel, but the calibration is of a {cal.gains.shape[2]}-channel "
+            "camera (a Bayer frame needs cal.bayer)"
+        )
     factors = _sample_factors(cal, arr.dtype)
     with np.errstate(invalid="ignore"):
         # One pass: arr converted to float32 times (gains * scale), NaN where gains = 0.
@@ -205,6 +255,8 @@ def parallax_map(
     """The parallax ``s`` of a :class:`DepthResult` or of an ``s`` array, checked
     against the rectified frame (low-level: :func:`resolve_parallax` is the public way)."""
     s = depth.parallax if isinstance(depth, DepthResult) else np.asarray(depth)
+    if s.dtype.kind not in "fiu":
+        raise InputError(f"{name}: expected real numbers, got dtype {s.dtype}")
     if s.shape != tuple(cal.rect_shape):
         raise InputError(
             f"{name}: parallax of shape {s.shape} does not match the rectified frame"
@@ -571,10 +623,17 @@ def super_resolve(
     >>> sr = lfcam.super_resolve(raw, cal, res.depth, factor=2)  # doctest: +SKIP
     >>> sr = lfcam.super_resolve(raw, cal, depth_m=z, factor=2)  # doctest: +SKIP
     """
+    check_instance(cal, Calibration, "cal")
     p = params or SuperResParams()
-    if not isinstance(factor, (int, np.integer)) or not (1 <= int(factor) <= 4):
+    check_instance(p, SuperResParams, "params")
+    if (
+        isinstance(factor, (bool, np.bool_))
+        or not isinstance(factor, (int, np.integer))
+        or not (1 <= int(factor) <= 4)
+    ):
         raise InputError(f"factor: expected an integer from 1 to 4, got {factor!r}")
     r = int(factor)
+    H, W = (int(x) for x in cal.rect_shape)
     s = resolve_parallax(cal, depth, parallax=parallax, depth_m=depth_m)
     values = raw_samples(raw, cal)
     positions = place_raw_samples(
@@ -582,13 +641,14 @@ def super_resolve(
     )
     weights = None
     if views is not None:
-        sel = np.asarray(views, np.int64).ravel()
+        sel = as_int_array(np.asarray(views).ravel(), "views", shape=(None,))
+        if sel.size == 0:
+            raise InputError("views: no view given (None uses all)")
         bad = sel[(sel < 0) | (sel >= cal.n_views)]
         if bad.size:
             raise InputError(f"views: index {int(bad[0])} is out of range for {cal.n_views} views")
         _, view = inverse_maps(cal)
         weights = np.isin(view, sel).astype(np.float32)
-    H, W = (int(x) for x in cal.rect_shape)
     # The fused image sum / wsum (0 where wsum < 1e-3: the holes) straight from the
     # core, as fill_holes(sum / wsum, wsum) would prepare it, without passes over it.
     z, wsum, have = _lfcam.shift_and_add_mean(
