@@ -19,7 +19,8 @@ import pytest
 
 import lfcam
 from lfcam.calibration import FORMAT_VERSION, Calibration, info
-from lfcam.errors import CalibrationError, InputError
+from lfcam.calibration.file import _seal
+from lfcam.errors import CalibrationError, InputError, LfcamWarning
 from lfcam.io import file_hash
 
 R, C = 3, 4
@@ -122,9 +123,26 @@ def good_file(tmp_path: Path, metric_calib: Calibration) -> Path:
     return metric_calib.save(tmp_path / "camera.lfcal")
 
 
-def edit(path: Path, fn: Callable[[h5py.File], Any]) -> None:
+def edit(path: Path, fn: Callable[[h5py.File], Any], *, seal: bool = True) -> None:
+    """Change a file with h5py, then (by default) recompute its checksums, as a writer
+    that made the change on purpose would: the loader's own checks must then catch it."""
     with h5py.File(path, "r+") as f:
         fn(f)
+    if seal:
+        _seal(path)
+
+
+def unsealed(path: Path, dest: Path) -> Path:
+    """A format-1.0 copy of a file: no user block, no checksum attributes."""
+    with h5py.File(path, "r") as src, h5py.File(dest, "w") as out:
+        for k, v in src.attrs.items():
+            if k != "sha256":
+                out.attrs[k] = v
+        out.attrs["format_version"] = "1.0"
+        for name in src:
+            src.copy(src[name], out, name=name)
+            del out[name].attrs["sha256"]
+    return dest
 
 
 def replace(name: str, data: Any) -> Callable[[h5py.File], None]:
@@ -276,8 +294,10 @@ def test_file_is_plain_hdf5(good_file: Path, metric_calib: Calibration) -> None:
         assert set(f.keys()) == DATASETS
         assert all(isinstance(f[k], h5py.Dataset) for k in f)
         assert f.attrs["format"] == "lfcam-calibration"
-        assert f.attrs["format_version"] == "1.0"
-        assert FORMAT_VERSION == (1, 0)
+        assert f.attrs["format_version"] == "1.1"
+        assert FORMAT_VERSION == (1, 1)
+        assert f.userblock_size == 512
+        assert all(re.fullmatch("[0-9a-f]{64}", f[k].attrs["sha256"]) for k in f)
         assert f.attrs["software_version"] == lfcam.__version__
         assert re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\+00:00", f.attrs["created"])
         dtypes = {k: f[k].dtype for k in f if k not in ("bayer", "report")}
@@ -449,7 +469,7 @@ def test_truncated(good_file: Path) -> None:
         Calibration.load(good_file)
     msg = str(e.value)
     assert msg.startswith(f"{good_file}: corrupt or truncated: ")
-    assert "truncated" in msg.lower()
+    assert "SHA-256 checksum does not match" in msg
 
 
 @pytest.mark.parametrize("part", ["data", "checksum"])
@@ -467,6 +487,13 @@ def test_corrupt_chunk_fails_the_checksum(good_file: Path, part: str) -> None:
     good_file.write_bytes(bytes(data))
     with h5py.File(good_file, "r") as f:  # the other views still read
         assert np.isfinite(f["warps"][3][f["masks"][3].astype(bool)]).all()
+    # The whole-file checksum catches it before HDF5 reads anything...
+    with pytest.raises(CalibrationError, match="SHA-256 checksum does not match"):
+        Calibration.load(good_file)
+    # ...and with the file's checksum recomputed over the damage, Fletcher-32 does.
+    from lfcam.calibration.file import _seal_file
+
+    _seal_file(good_file)
     with pytest.raises(CalibrationError) as e:
         Calibration.load(good_file)
     msg = str(e.value)
@@ -521,7 +548,7 @@ BAD_FILES: list[tuple[str, Callable[[h5py.File], Any], str]] = [
     (
         "extra",
         lambda f: f.create_dataset("notes", data=1),
-        "unexpected dataset 'notes' in a format 1.0 file",
+        "unexpected dataset 'notes' in a format 1.1 file",
     ),
     (
         "group",
@@ -588,7 +615,7 @@ BAD_FILES: list[tuple[str, Callable[[h5py.File], Any], str]] = [
     (
         "distances-empty",
         replace("distances", np.zeros(0)),
-        "distances: expected shape (K,) = (K,), got (0,)",
+        "distances: expected shape (K,) with 1 <= K <= 1000 = (K,), got (0,)",
     ),
     (
         "bayer-array",
@@ -767,7 +794,7 @@ def test_summary_metric(good_file: Path, metric_calib: Calibration) -> None:
     lines = s.splitlines()
     assert lines[0] == "lfcam calibration"
     for needle in [
-        "format            lfcam-calibration 1.0",
+        "format            lfcam-calibration 1.1",
         f"software version  {lfcam.__version__}",
         "grid              3 x 4 lenslets (12 views)",
         "reference view    5 (row 1, col 1)",
@@ -824,9 +851,10 @@ def test_info(good_file: Path, metric_calib: Calibration) -> None:
     text = info(good_file)
     lines = text.splitlines()
     assert lines[0] == f"file         {good_file}"
-    assert lines[1] == "file format  1.0"
+    assert lines[1] == "file format  1.1"
     assert lines[2].startswith("created      20")
     assert lines[3] == f"sha256       {file_hash(good_file)}"
+    assert lines[4] == "checksums    verified (the file, every dataset)"
     assert text.endswith(metric_calib.summary())
     good_file.write_bytes(b"junk")
     with pytest.raises(CalibrationError, match="not an HDF5 file"):
@@ -846,3 +874,235 @@ def test_file_hash(good_file: Path, tmp_path: Path) -> None:
     assert file_hash(good_file) == digest
     with pytest.raises(InputError, match=re.escape(f"{tmp_path / 'none'}: no such file")):
         file_hash(tmp_path / "none")
+
+
+# --------------------------------------------------------------------------- checksums, format 1.0
+
+
+def test_every_byte_is_covered(good_file: Path) -> None:
+    """Each of 400 single-byte changes, spread over the whole file, is refused before
+    h5py opens it (user block) or by the file's checksum."""
+    data = good_file.read_bytes()
+    bad = good_file.with_name("bad.lfcal")
+    rng = np.random.default_rng(3)
+    for at in sorted({0, 30, 90, 511, 512, len(data) - 1, *rng.integers(0, len(data), 394)}):
+        mutant = bytearray(data)
+        mutant[at] ^= 1 << int(rng.integers(0, 8))
+        bad.write_bytes(bytes(mutant))
+        with pytest.raises(CalibrationError) as e:
+            Calibration.load(bad)
+        assert str(e.value).startswith(f"{bad}: "), at
+
+
+@pytest.mark.parametrize("name", ["z_c", "offsets", "crops", "centres", "reference", "report"])
+def test_dataset_checksums_catch_value_changes(good_file: Path, name: str) -> None:
+    """A small dataset changed through HDF5, the file's checksum recomputed (as a careless
+    tool would), is still refused: its own checksum no longer matches."""
+    from lfcam.calibration.file import _seal_file
+
+    def change(f: h5py.File) -> None:
+        ds = f[name]
+        if name == "report":
+            ds[()] = '{"summary": {}}'
+        else:
+            arr = ds[()]
+            ds[()] = arr + 1 if arr.dtype.kind in "iu" else arr * 1.25
+
+    edit(good_file, change, seal=False)
+    _seal_file(good_file)
+    with pytest.raises(CalibrationError) as e:
+        Calibration.load(good_file)
+    assert str(e.value) == (
+        f"{good_file}: {name}: its values do not match their checksum "
+        "(the dataset was changed or damaged after it was written)"
+    )
+
+
+def test_root_attribute_checksum(good_file: Path) -> None:
+    from lfcam.calibration.file import _seal_file
+
+    edit(good_file, set_attr("software_version", "9.9.9"), seal=False)
+    _seal_file(good_file)
+    with pytest.raises(CalibrationError, match="root attributes do not match their checksum"):
+        Calibration.load(good_file)
+
+
+def test_damaged_user_block(good_file: Path) -> None:
+    data = bytearray(good_file.read_bytes())
+    data[200] = 7  # the zero padding after the seal
+    good_file.write_bytes(bytes(data))
+    with pytest.raises(CalibrationError, match=r"its checksum block .* is damaged"):
+        Calibration.load(good_file)
+    data[200] = 0
+    data[0:5] = b"LFCAM"  # no seal: then it claims 1.1 without checksums
+    good_file.write_bytes(bytes(data))
+    with pytest.raises(CalibrationError, match=r"a format 1\.1 file carries a checksum"):
+        Calibration.load(good_file)
+
+
+def test_format_1_0_loads_with_a_warning(
+    good_file: Path, metric_calib: Calibration, tmp_path: Path
+) -> None:
+    old = unsealed(good_file, tmp_path / "old.lfcal")
+    with pytest.warns(LfcamWarning, match="format 1.0 calibration file, without checksums"):
+        loaded = Calibration.load(old)
+    assert_same(metric_calib, loaded)
+    with pytest.warns(LfcamWarning):
+        assert "checksums    none (format 1.0 file)" in info(old)
+    # Saving it again upgrades it.
+    loaded.save(old)
+    assert_same(metric_calib, Calibration.load(old))
+    # A damaged 1.0 file still gets the loader's checks.
+    old2 = unsealed(good_file, tmp_path / "old2.lfcal")
+    edit(old2, replace("z_c", 1.5), seal=False)
+    with (
+        pytest.raises(CalibrationError, match="z_c: metric mode needs"),
+        pytest.warns(LfcamWarning),
+    ):
+        Calibration.load(old2)
+
+
+def test_format_1_0_crash_in_hdf5_is_an_error(
+    good_file: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An unsealed file is read in a child process first: its crash or hang is reported."""
+    import subprocess
+
+    from lfcam.calibration import file as calfile
+
+    old = unsealed(good_file, tmp_path / "old.lfcal")
+    real = subprocess.run
+
+    def crash(args: list[Any], **kw: Any) -> Any:
+        return real(
+            [args[0], "-c", "import os, signal; os.kill(os.getpid(), signal.SIGSEGV)"], **kw
+        )
+
+    monkeypatch.setattr(calfile.subprocess, "run", crash)
+    with pytest.raises(CalibrationError) as e:
+        Calibration.load(old)
+    assert str(e.value) == f"{old}: corrupt: reading it crashed the HDF5 library (signal 11)"
+
+    def hang(args: list[Any], **kw: Any) -> Any:
+        return real([args[0], "-c", "import time; time.sleep(60)"], **{**kw, "timeout": 0.5})
+
+    monkeypatch.setattr(calfile.subprocess, "run", hang)
+    with pytest.raises(
+        CalibrationError, match=f"{re.escape(str(old))}: corrupt: reading it did not"
+    ):
+        Calibration.load(old)
+
+
+@pytest.mark.parametrize(
+    ("name", "value", "message"),
+    [
+        ("raw_shape", [200_000, 200_000], "raw_shape: a 200000 x 200000 (H x W) frame is larger"),
+        ("rect_shape", [200_000, 200_000], "rect_shape: a 200000 x 200000 (H x W) frame is larger"),
+        ("rect_shape", [16_000, 16_000], "rect_shape: 12 views of 16000 x 16000 px are more"),
+        ("grid", [100, 100], "grid: 100 x 100 = 10000 views, more than lfcam reads (4096)"),
+    ],
+)
+def test_declared_sizes_are_bounded(
+    good_file: Path, name: str, value: list[int], message: str
+) -> None:
+    """Huge declared sizes are refused before any array is read or allocated."""
+    edit(good_file, replace(name, np.array(value)))
+    with pytest.raises(CalibrationError) as e:
+        Calibration.load(good_file)
+    assert str(e.value).startswith(f"{good_file}: {message}")
+
+
+def test_load_refuses_non_paths() -> None:
+    for bad in (None, 3, b"\xff.lfcal"):
+        with pytest.raises(InputError, match=r"^path: expected a calibration file.s path"):
+            Calibration.load(bad)  # type: ignore[arg-type]
+
+
+def test_non_utf8_file_name(good_file: Path, tmp_path: Path) -> None:
+    """A name that is not valid UTF-8 (byte 0xff) loads, and errors name it."""
+    name = os.fsdecode(b"cam\xff.lfcal")
+    shutil.copyfile(good_file, tmp_path / name)
+    Calibration.load(tmp_path / name)
+    (tmp_path / name).write_bytes(b"junk")
+    with pytest.raises(CalibrationError, match="not an HDF5 file"):
+        Calibration.load(tmp_path / name)
+
+
+def test_format_1_0_probe_succeeds_unpatched(
+    good_file: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The child process really reads a good 1.0 file and says so (the lfcam it imports
+    is this one, whatever PYTHONPATH says)."""
+    from lfcam.calibration import file as calfile
+
+    old = unsealed(good_file, tmp_path / "old.lfcal")
+    calfile._probe(old, str(old))
+    monkeypatch.delenv("PYTHONPATH", raising=False)
+    calfile._probe(old, str(old))
+
+
+@pytest.mark.parametrize(
+    ("child", "why"),
+    [
+        (
+            "import lfcam_missing",
+            "exit code 1: ModuleNotFoundError: No module named 'lfcam_missing'",
+        ),
+        ("pass", "exit code 0"),  # ended without its success marker
+    ],
+)
+def test_format_1_0_failed_probe_is_an_error(
+    good_file: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, child: str, why: str
+) -> None:
+    import subprocess
+
+    from lfcam.calibration import file as calfile
+
+    old = unsealed(good_file, tmp_path / "old.lfcal")
+    real = subprocess.run
+
+    def failing(args: list[Any], **kw: Any) -> Any:
+        return real([args[0], "-c", child], **kw)
+
+    monkeypatch.setattr(calfile.subprocess, "run", failing)
+    with pytest.raises(CalibrationError) as e:
+        Calibration.load(old)
+    assert str(e.value) == (
+        f"{old}: a format 1.0 file is read in a child process first, and that failed ({why})"
+    )
+
+
+def test_the_file_hashed_is_the_file_parsed(
+    good_file: Path, metric_calib: Calibration, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Another file renamed over the path between the checksum and the parse is not read."""
+    from lfcam.calibration import file as calfile
+
+    other = Calibration(**make_values(seed=1)).save(tmp_path / "other.lfcal")
+    real = calfile._check_seal
+
+    def then_swap(fh: Any, where: str) -> bool:
+        sealed = real(fh, where)
+        os.replace(other, good_file)
+        return sealed
+
+    monkeypatch.setattr(calfile, "_check_seal", then_swap)
+    digest = file_hash(good_file)
+    assert_same(metric_calib, Calibration.load(good_file, sha256=digest))
+    monkeypatch.undo()
+    assert not np.array_equal(Calibration.load(good_file).offsets, metric_calib.offsets)
+    with pytest.raises(CalibrationError) as e:
+        Calibration.load(good_file, sha256=digest)
+    assert str(e.value) == (
+        f"{good_file}: sha256 {file_hash(good_file)} differs from the expected {digest}"
+    )
+
+
+def test_file_hash_offset_and_open_files(good_file: Path) -> None:
+    data = good_file.read_bytes()
+    assert file_hash(good_file, offset=512) == hashlib.sha256(data[512:]).hexdigest()
+    with open(good_file, "rb") as fh:
+        assert file_hash(fh) == hashlib.sha256(data).hexdigest()
+        assert file_hash(fh, offset=512) == hashlib.sha256(data[512:]).hexdigest()
+    # The seal in the user block is the hash of what follows it.
+    assert data.startswith(b"lfcam-calibration sha256 " + file_hash(good_file, offset=512).encode())

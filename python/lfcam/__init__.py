@@ -8,18 +8,27 @@ per-pixel work runs in a Rust core (``lfcam._lfcam``) on lfcam's own thread pool
 The stages live in subpackages that import only downwards (docs/design.md, "Module
 map"): :mod:`lfcam.io` and :mod:`lfcam.kernels` <- :mod:`lfcam.calibration` <-
 :mod:`lfcam.processing` <- :mod:`lfcam.products` and :mod:`lfcam.sim` <-
-:mod:`lfcam.pipeline` <- :mod:`lfcam.outputs` <- :mod:`lfcam.cli`.
+:mod:`lfcam.pipeline` <- :mod:`lfcam.outputs` <- :mod:`lfcam.batch` <- :mod:`lfcam.cli`.
 """
 
+from lfcam._build import build_info
 from lfcam._lfcam import __version__, get_num_threads, set_num_threads
+from lfcam.batch import BatchSummary, ProcessOptions, process_folder
 from lfcam.calibration import Calibration, CalibrationParams, calibrate, make_pattern
-from lfcam.errors import CalibrationError, InputError, LfcamError, NumericalError
+from lfcam.errors import (
+    CalibrationError,
+    InputError,
+    LfcamError,
+    LfcamWarning,
+    NumericalError,
+)
 from lfcam.io import read_image, read_pfm, read_raw, write_pfm
 from lfcam.kernels import crop_lenslets, nan_median, remap_bilinear
 from lfcam.pipeline import CaptureResult, process_capture
 from lfcam.processing import (
     DepthParams,
     DepthResult,
+    RefineParams,
     TriangulationParams,
     TriangulationResult,
     depth_from_views,
@@ -40,6 +49,7 @@ from lfcam.products import (
 from lfcam.sim import LightField, SimConfig, SimulationResult, simulate
 
 __all__ = [
+    "BatchSummary",
     "Calibration",
     "CalibrationError",
     "CalibrationParams",
@@ -48,9 +58,12 @@ __all__ = [
     "DepthResult",
     "InputError",
     "LfcamError",
+    "LfcamWarning",
     "LightField",
     "Mesh",
     "NumericalError",
+    "ProcessOptions",
+    "RefineParams",
     "RenderResult",
     "SimConfig",
     "SimulationResult",
@@ -59,6 +72,7 @@ __all__ = [
     "TriangulationResult",
     "__version__",
     "all_in_focus",
+    "build_info",
     "calibrate",
     "crop_lenslets",
     "depth_from_views",
@@ -68,6 +82,7 @@ __all__ = [
     "mesh_from_depth",
     "nan_median",
     "process_capture",
+    "process_folder",
     "read_image",
     "read_pfm",
     "read_raw",

@@ -8,7 +8,7 @@ working. The Rust core's errors are mapped onto these classes one variant at a t
 
 from __future__ import annotations
 
-__all__ = ["CalibrationError", "InputError", "LfcamError", "NumericalError"]
+__all__ = ["CalibrationError", "InputError", "LfcamError", "LfcamWarning", "NumericalError"]
 
 
 class LfcamError(Exception):
@@ -43,3 +43,9 @@ class CalibrationError(LfcamError):
 class NumericalError(LfcamError, ArithmeticError):
     """A numerical procedure failed: a singular system, no convergence, or a
     non-finite result."""
+
+
+class LfcamWarning(UserWarning):
+    """Something lfcam did but could not check or do as well as usual, for example a
+    calibration file of an older format without checksums, or a result with little
+    coverage."""

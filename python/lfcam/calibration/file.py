@@ -6,7 +6,7 @@ and when it is loaded, by one function, so an invalid calibration cannot exist i
 memory or on disk. Loading never runs code from the file: only numbers, plain strings
 and a JSON document are read.
 
-File layout, format 1.0
+File layout, format 1.1
 -----------------------
 One HDF5 file, readable with any HDF5 library (h5py, MATLAB ``h5read``, Julia HDF5.jl,
 the C API). Shapes below are in C (row-major) order, as h5py and C see them; MATLAB and
@@ -18,10 +18,11 @@ Root attributes (strings):
 
 ====================  ===================================================================
 ``format``            ``"lfcam-calibration"``
-``format_version``    ``"MAJOR.MINOR"``, ``"1.0"`` here. A reader refuses a newer MAJOR;
+``format_version``    ``"MAJOR.MINOR"``, ``"1.1"`` here. A reader refuses a newer MAJOR;
                       a newer MINOR only adds datasets, which older readers ignore.
 ``software_version``  the lfcam version that wrote the file
 ``created``           ISO-8601 UTC time of writing, e.g. ``2026-05-01T12:00:00+00:00``
+``sha256``            checksum of the other root attributes (see Checksums)
 ====================  ===================================================================
 
 Datasets at the root, one per field of :class:`Calibration` (no groups, no others):
@@ -59,35 +60,89 @@ chunk) and stored with the shuffle, gzip (level 4) and Fletcher-32 checksum filt
 all built into HDF5. A reader also accepts any integer dtype for the int64 datasets,
 any float or integer dtype for the float ones, and 0/1 integers or booleans for
 ``masks`` and ``metric``; lfcam converts them to the dtypes above.
+
+Checksums (format 1.1)
+----------------------
+The file starts with a 512-byte HDF5 user block holding
+``lfcam-calibration sha256 <64 hex digits>\n`` and zero bytes: the SHA-256 of every
+byte after the block. It is checked before the HDF5 library reads anything, so a
+changed or damaged file is refused before a parser sees it. Every dataset also has an
+attribute ``sha256`` over its name, values and other attributes, and the root one over
+the root attributes, checked as each is read. Declared sizes are bounded (at most
+:data:`MAX_VIEWS` views, frames within ``lfcam.io.MAX_IMAGE_SIDE`` and
+``MAX_IMAGE_PIXELS``, at most :data:`MAX_DISTANCES` distances) before any array is read.
+
+A format 1.0 file (no user block, no checksums) still loads, with an
+:class:`~lfcam.LfcamWarning`; it is first read in a child process, so that a crash or
+hang of the HDF5 library on a damaged file becomes a :class:`~lfcam.CalibrationError`.
+Saving it again upgrades it.
+
+Writing datasets goes through ``_write_dataset`` and reading through
+``_read_dataset``, both for any HDF5 group, so a later format that adds groups (one
+per camera setting, say) gets the same checksums by using them.
 """
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
 import json
 import math
 import os
 import re
+import subprocess
+import sys
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import Any, BinaryIO, NoReturn
 
 import h5py  # type: ignore[import-untyped]
 import numpy as np
 from numpy.typing import NDArray
 
 from .._lfcam import __version__
-from ..errors import CalibrationError, InputError
-from ..io import BAYER_PATTERNS, atomic_output, file_hash
+from ..errors import CalibrationError, InputError, LfcamWarning
+from ..io import BAYER_PATTERNS, MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE, atomic_output, file_hash
 
-__all__ = ["BAYER_PATTERNS", "FORMAT_NAME", "FORMAT_VERSION", "Calibration", "file_hash", "info"]
+__all__ = [
+    "BAYER_PATTERNS",
+    "FORMAT_NAME",
+    "FORMAT_VERSION",
+    "MAX_DISTANCES",
+    "MAX_VIEWS",
+    "Calibration",
+    "file_hash",
+    "info",
+]
 
 FORMAT_NAME = "lfcam-calibration"
 """The root ``format`` attribute of every ``.lfcal`` file."""
 
-FORMAT_VERSION = (1, 0)
+FORMAT_VERSION = (1, 1)
 """(MAJOR, MINOR) of the file format this module writes and reads (and older MINORs)."""
+
+MAX_VIEWS = 4096
+"""Most views (``R * C``) a calibration may declare; checked before anything is read."""
+
+MAX_DISTANCES = 1000
+"""Most board distances (``K``) a calibration may declare."""
+
+# The HDF5 user block: "lfcam-calibration sha256 <64 hex digits>\n", then zero bytes.
+# The digest is SHA-256 of every byte after the block; it is checked before h5py
+# (and the HDF5 library) reads anything of the file.
+_USERBLOCK_SIZE = 512
+_SEAL_PREFIX = b"lfcam-calibration sha256 "
+_SEAL_LENGTH = len(_SEAL_PREFIX) + 64 + 1
+_HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+# Attribute holding the SHA-256 of a dataset's values and other attributes (and, at
+# the root, of the root attributes).
+_DIGEST_ATTR = "sha256"
+# A format-1.0 file (no checksums) is first read in a child process: if the HDF5
+# library crashes or hangs on it, that is an error naming the file, not a dead process.
+_PROBE_TIMEOUT_S = 120.0
 
 
 # Datasets stored chunked + compressed + checksummed.
@@ -178,9 +233,11 @@ def _check_shape(
     if name == "gains" and ok:
         ok = shape[2] in (1, 3)
     if name == "distances" and ok:
-        ok = shape[0] >= 1
+        ok = 1 <= shape[0] <= MAX_DISTANCES
     if not ok:
         letter = {"distances": "K", "gains": "C"}.get(name, "?")
+        if name == "distances":
+            symbolic += f" with 1 <= K <= {MAX_DISTANCES}"
         shown = tuple(letter if e is None else e for e in want)
         raise CalibrationError(
             f"{where}: {name}: expected shape {symbolic} = {_fmt_shape(shown)}, "
@@ -219,6 +276,31 @@ def _int_pair(value: Any, name: str, where: str) -> tuple[int, int]:
     if a < 1 or b < 1:
         raise CalibrationError(f"{where}: {name}: expected two integers >= 1, got ({a}, {b})")
     return a, b
+
+
+def _check_sizes(
+    grid: tuple[int, int],
+    raw_shape: tuple[int, int],
+    rect_shape: tuple[int, int],
+    where: str,
+) -> None:
+    """Bounds on the declared sizes, so that no array they imply is absurdly large."""
+    n = grid[0] * grid[1]
+    if n > MAX_VIEWS:
+        raise CalibrationError(
+            f"{where}: grid: {grid[0]} x {grid[1]} = {n} views, more than lfcam reads ({MAX_VIEWS})"
+        )
+    for name, (h, w) in (("raw_shape", raw_shape), ("rect_shape", rect_shape)):
+        if max(h, w) > MAX_IMAGE_SIDE or h * w > MAX_IMAGE_PIXELS:
+            raise CalibrationError(
+                f"{where}: {name}: a {h} x {w} (H x W) frame is larger than lfcam reads "
+                f"({MAX_IMAGE_SIDE} px a side, {MAX_IMAGE_PIXELS} px in all)"
+            )
+    if n * rect_shape[0] * rect_shape[1] > MAX_IMAGE_PIXELS:
+        raise CalibrationError(
+            f"{where}: rect_shape: {n} views of {rect_shape[0]} x {rect_shape[1]} px are "
+            f"more rectified pixels than lfcam reads ({MAX_IMAGE_PIXELS} in all)"
+        )
 
 
 def _scalar(value: Any, name: str, where: str) -> Any:
@@ -261,6 +343,7 @@ def _validate(values: Mapping[str, Any], where: str) -> dict[str, Any]:
     raw_shape = _int_pair(values["raw_shape"], "raw_shape", where)
     rect_shape = _int_pair(values["rect_shape"], "rect_shape", where)
     pattern_shape = _int_pair(values["pattern_shape"], "pattern_shape", where)
+    _check_sizes(grid, raw_shape, rect_shape, where)
     out.update(grid=grid, raw_shape=raw_shape, rect_shape=rect_shape, pattern_shape=pattern_shape)
     n = grid[0] * grid[1]
     shapes = _expected_shapes(grid, raw_shape, rect_shape)
@@ -539,14 +622,16 @@ class Calibration:
             raise InputError(f"{p}: folder {p.parent} does not exist")
         if p.is_dir():
             raise InputError(f"{p}: is a folder")
-        with atomic_output(p) as tmp, h5py.File(tmp, "w") as f:
-            _write(f, values)
+        with atomic_output(p) as tmp:
+            with h5py.File(tmp, "w", userblock_size=_USERBLOCK_SIZE) as f:
+                _write(f, values)
+            _seal_file(tmp)
         return p
 
     # ----------------------------------------------------------------------- reading
 
     @classmethod
-    def load(cls, path: str | os.PathLike[str]) -> Calibration:
+    def load(cls, path: str | os.PathLike[str], *, sha256: str | None = None) -> Calibration:
         """Read and validate an ``.lfcal`` file.
 
         Parameters
@@ -554,6 +639,9 @@ class Calibration:
         path : path-like
             A file written by :meth:`save` (or by any program following the layout in
             this module's docstring).
+        sha256 : str, optional
+            Refuse the file unless its SHA-256 (:func:`lfcam.io.file_hash`) is this:
+            the bytes hashed are the bytes parsed.
 
         Returns
         -------
@@ -567,10 +655,10 @@ class Calibration:
             If the file is not HDF5, is corrupt or truncated (including a failed
             checksum), is not an lfcam calibration, was written by a newer major
             format version, lacks a dataset or has an unexpected one, or holds
-            inconsistent data. The message starts with the path and names the
-            dataset or attribute at fault.
+            inconsistent data, or its SHA-256 is not ``sha256``. The message starts
+            with the path and names the dataset or attribute at fault.
         """
-        values, _ = _read(path)
+        values, _ = _read(path, sha256)
         return cls(**values)
 
     # ----------------------------------------------------------------------- display
@@ -678,7 +766,200 @@ def _table(heads: list[str], rows: list[list[str]]) -> list[str]:
     return out
 
 
+# --------------------------------------------------------------------------- checksums
+
+
+def _encode(value: Any) -> bytes:
+    """A value's bytes for a checksum: kind, dtype and shape, then the data."""
+    if isinstance(value, str):
+        return b"s" + value.encode("utf-8", "surrogatepass")
+    if isinstance(value, bytes):
+        return b"b" + value
+    arr = np.asarray(value)
+    if arr.dtype.kind in "OSU":  # strings in an array: each one's bytes
+        parts = [
+            _encode(v.decode("utf-8", "surrogateescape") if isinstance(v, bytes) else v)
+            for v in arr.reshape(-1).tolist()
+        ]
+        return (
+            b"a"
+            + repr(arr.shape).encode()
+            + b"".join(len(x).to_bytes(8, "little") + x for x in parts)
+        )
+    le = arr.dtype.newbyteorder("<")
+    data = np.ascontiguousarray(arr, dtype=le)
+    return b"n" + le.str.encode() + repr(arr.shape).encode() + data.tobytes()
+
+
+def _digest(items: list[tuple[str, Any]]) -> str:
+    """SHA-256 of (name, value) pairs, as 64 hex digits."""
+    h = hashlib.sha256()
+    for name, value in items:
+        for part in (name.encode("utf-8", "surrogatepass"), _encode(value)):
+            h.update(len(part).to_bytes(8, "little"))
+            h.update(part)
+    return h.hexdigest()
+
+
+def _attrs_items(node: h5py.HLObject) -> list[tuple[str, Any]]:
+    return [(k, node.attrs[k]) for k in sorted(node.attrs) if k != _DIGEST_ATTR]
+
+
+def _dataset_digest(ds: h5py.Dataset, value: Any) -> str:
+    """Checksum of a dataset: its name, its values and its other attributes."""
+    return _digest([("", ds.name), ("value", value), *_attrs_items(ds)])
+
+
+def _dataset_value(ds: h5py.Dataset) -> Any:
+    """A dataset's values as read for its checksum: strings as str, numbers as arrays."""
+    if h5py.check_string_dtype(ds.dtype) is not None:
+        return ds.asstr()[()] if ds.shape == () else [str(v) for v in ds.asstr()[()].tolist()]
+    return ds[()]
+
+
+def _seal_file(path: Path) -> None:
+    """Write the file's SHA-256 (of everything after the user block) into its user block."""
+    with open(path, "rb+") as fh:
+        seal = _SEAL_PREFIX + file_hash(fh, offset=_USERBLOCK_SIZE).encode() + b"\n"
+        fh.seek(0)
+        fh.write(seal + bytes(_USERBLOCK_SIZE - len(seal)))
+
+
+def _seal(path: str | os.PathLike[str]) -> None:
+    """Recompute every checksum of an lfcam file that has a user block.
+
+    For files changed with another HDF5 tool on purpose (and for the tests, which damage
+    files in known ways): the dataset checksums from their current values, the root's,
+    then the whole-file checksum in the user block.
+    """
+    p = Path(path)
+    with h5py.File(p, "r+") as f:
+        if f.userblock_size != _USERBLOCK_SIZE:
+            raise CalibrationError(f"{p}: no {_USERBLOCK_SIZE}-byte user block to seal")
+        datasets: list[h5py.Dataset] = []
+        f.visititems(lambda _, obj: datasets.append(obj) if isinstance(obj, h5py.Dataset) else None)
+        for ds in datasets:
+            ds.attrs[_DIGEST_ATTR] = _dataset_digest(ds, _dataset_value(ds))
+        f.attrs[_DIGEST_ATTR] = _digest(_attrs_items(f))
+    _seal_file(p)
+
+
+def _check_seal(fh: BinaryIO, where: str) -> bool:
+    """Verify the whole-file checksum of an open file, before anything parses it.
+
+    Returns True for a sealed (format 1.1 or later) file, False for an HDF5 file
+    without a seal (format 1.0, or written by another program).
+    """
+    try:
+        fh.seek(0)
+        head = fh.read(_USERBLOCK_SIZE + len(_HDF5_SIGNATURE))
+        if not head.startswith(_SEAL_PREFIX):
+            if not any(head[o : o + len(_HDF5_SIGNATURE)] == _HDF5_SIGNATURE for o in (0, 512)):
+                raise CalibrationError(
+                    f"{where}: not an HDF5 file, so not an lfcam calibration (.lfcal)"
+                )
+            return False
+        seal = head[:_SEAL_LENGTH]
+        stored = seal[len(_SEAL_PREFIX) : -1].decode("ascii", "replace")
+        if (
+            len(head) < _USERBLOCK_SIZE
+            or seal[-1:] != b"\n"
+            or re.fullmatch(r"[0-9a-f]{64}", stored) is None
+            or any(head[_SEAL_LENGTH:_USERBLOCK_SIZE])
+        ):
+            raise CalibrationError(
+                f"{where}: corrupt or truncated: its checksum block (the HDF5 user block) "
+                "is damaged"
+            )
+        digest = file_hash(fh, offset=_USERBLOCK_SIZE)
+    except OSError as e:
+        raise CalibrationError(f"{where}: cannot read file ({e.strerror or e})") from None
+    if digest != stored:
+        raise CalibrationError(
+            f"{where}: corrupt or truncated: the file's SHA-256 checksum does not match the "
+            "one stored in it (the file was changed or damaged after it was written)"
+        )
+    return True
+
+
+# What the probe's child prints when it has read the file (or refused it with an lfcam
+# error, which the parent then meets and reports itself).
+_PROBE_OK = "lfcam-probe: read"
+_PROBE_CODE = f"""
+import sys
+from lfcam.errors import LfcamError
+from lfcam.calibration.file import _read_hdf5
+try:
+    _read_hdf5(sys.argv[1])
+except LfcamError:
+    pass
+print({_PROBE_OK!r})
+"""
+
+
+def _probe(p: Path, where: str) -> None:
+    """Read an unsealed file in a child process first: a crash or hang there is an error,
+    and so is any end of the child other than its success marker and exit code 0."""
+    # The child imports this very lfcam, wherever it was imported from.
+    root = str(Path(__file__).resolve().parents[2])
+    path = os.pathsep.join(x for x in (root, os.environ.get("PYTHONPATH")) if x)
+    try:
+        run = subprocess.run(
+            [sys.executable, "-c", _PROBE_CODE, os.fsencode(p)],
+            stdin=subprocess.DEVNULL,
+            capture_output=True,
+            env={**os.environ, "PYTHONPATH": path},
+            timeout=_PROBE_TIMEOUT_S,
+            check=False,
+        )
+    except subprocess.TimeoutExpired:
+        raise CalibrationError(
+            f"{where}: corrupt: reading it did not finish within {_PROBE_TIMEOUT_S:.0f} s"
+        ) from None
+    if run.returncode < 0:
+        raise CalibrationError(
+            f"{where}: corrupt: reading it crashed the HDF5 library (signal {-run.returncode})"
+        )
+    if run.returncode != 0 or run.stdout.splitlines()[-1:] != [_PROBE_OK.encode()]:
+        last = run.stderr.decode("utf-8", "replace").strip().splitlines()[-1:]
+        why = f": {last[0]}" if last else ""
+        raise CalibrationError(
+            f"{where}: a format 1.0 file is read in a child process first, and that"
+            f" failed (exit code {run.returncode}{why})"
+        )
+
+
 # --------------------------------------------------------------------------- HDF5 I/O
+
+
+def _write_dataset(
+    group: h5py.Group, name: str, data: Any, description: str, *, compressed: bool
+) -> h5py.Dataset:
+    """One dataset with its description and its checksum (any group: the root or a setting)."""
+    if compressed:
+        shape = np.shape(data)
+        if len(shape) == 3 and name == "gains":  # (H_raw, W_raw, C): tiles of all channels
+            chunks: tuple[int, ...] = (
+                min(shape[0], _CHUNK_PX),
+                min(shape[1], _CHUNK_PX),
+                shape[2],
+            )
+        else:  # (N, H_rect, W_rect[, 2]): tiles of one view
+            chunks = (1, min(shape[1], _CHUNK_PX), min(shape[2], _CHUNK_PX), *shape[3:])
+        ds = group.create_dataset(
+            name,
+            data=data,
+            chunks=chunks,
+            shuffle=True,
+            compression="gzip",
+            compression_opts=_GZIP_LEVEL,
+            fletcher32=True,
+        )
+    else:
+        ds = group.create_dataset(name, data=data)
+    ds.attrs["description"] = description
+    ds.attrs[_DIGEST_ATTR] = _dataset_digest(ds, data)
+    return ds
 
 
 def _write(f: h5py.File, values: Mapping[str, Any]) -> None:
@@ -700,24 +981,8 @@ def _write(f: h5py.File, values: Mapping[str, Any]) -> None:
             data = np.float64(value)
         else:
             data = value
-        if name in _COMPRESSED:
-            shape = data.shape
-            if name == "gains":  # (H_raw, W_raw, C): tiles of all channels
-                chunks = (min(shape[0], _CHUNK_PX), min(shape[1], _CHUNK_PX), shape[2])
-            else:  # (N, H_rect, W_rect[, 2]): tiles of one view
-                chunks = (1, min(shape[1], _CHUNK_PX), min(shape[2], _CHUNK_PX), *shape[3:])
-            ds = f.create_dataset(
-                name,
-                data=data,
-                chunks=chunks,
-                shuffle=True,
-                compression="gzip",
-                compression_opts=_GZIP_LEVEL,
-                fletcher32=True,
-            )
-        else:
-            ds = f.create_dataset(name, data=data)
-        ds.attrs["description"] = _DESCRIPTIONS[name]
+        _write_dataset(f, name, data, _DESCRIPTIONS[name], compressed=name in _COMPRESSED)
+    f.attrs[_DIGEST_ATTR] = _digest(_attrs_items(f))
 
 
 def _attr_str(f: h5py.File, name: str, where: str) -> str:
@@ -779,9 +1044,10 @@ def _read_header(f: h5py.File, where: str) -> dict[str, Any]:
     }
 
 
-def _read_dataset(f: h5py.File, name: str, where: str, expected: Any) -> Any:
-    """Read one dataset after checking its kind and shape (so nothing huge or odd is read)."""
-    ds = f[name]
+def _read_dataset(group: h5py.Group, name: str, where: str, expected: Any, *, sealed: bool) -> Any:
+    """Read one dataset after checking its kind and shape (so nothing huge or odd is read);
+    in a sealed file, check its values against its checksum."""
+    ds = group[name]
     if not isinstance(ds, h5py.Dataset):
         raise CalibrationError(f"{where}: {name}: expected a dataset, found a group")
     if name in _STRING_DATASETS:
@@ -792,22 +1058,32 @@ def _read_dataset(f: h5py.File, name: str, where: str, expected: Any) -> Any:
                 f"{where}: {name}: expected a scalar string, got shape {ds.shape}"
             )
         try:
-            text = ds.asstr()[()]
+            value: Any = str(ds.asstr()[()])
         except UnicodeDecodeError:
             raise CalibrationError(f"{where}: {name}: not valid UTF-8 text") from None
-        return str(text)
-    _check_kind(name, ds.dtype, where)
-    if expected is not None:
-        _check_shape(name, ds.shape, expected, where)
-    try:
-        return ds[()]
-    except (OSError, ValueError, RuntimeError) as e:
-        hint = ""
-        if "filter returned failure" in str(e):  # HDF5's words for a failed checksum or inflate
-            hint = ": its Fletcher-32 checksum or decompression failed, the file is damaged"
-        raise CalibrationError(
-            f"{where}: corrupt or truncated: cannot read dataset {name!r} ({e}){hint}"
-        ) from None
+    else:
+        _check_kind(name, ds.dtype, where)
+        if expected is not None:
+            _check_shape(name, ds.shape, expected, where)
+        try:
+            value = ds[()]
+        except (OSError, ValueError, RuntimeError) as e:
+            hint = ""
+            if "filter returned failure" in str(e):  # HDF5's words for a failed checksum
+                hint = ": its Fletcher-32 checksum or decompression failed, the file is damaged"
+            raise CalibrationError(
+                f"{where}: corrupt or truncated: cannot read dataset {name!r} ({e}){hint}"
+            ) from None
+    if sealed:
+        stored = ds.attrs.get(_DIGEST_ATTR)
+        if not isinstance(stored, str):
+            raise CalibrationError(f"{where}: {name}: no {_DIGEST_ATTR!r} checksum attribute")
+        if _dataset_digest(ds, value) != stored:
+            raise CalibrationError(
+                f"{where}: {name}: its values do not match their checksum "
+                "(the dataset was changed or damaged after it was written)"
+            )
+    return value
 
 
 def _parse_report(text: str, where: str) -> Any:
@@ -820,25 +1096,31 @@ def _parse_report(text: str, where: str) -> Any:
         raise CalibrationError(f"{where}: report: not valid JSON ({e})") from None
 
 
-def _read(path: str | os.PathLike[str]) -> tuple[dict[str, Any], dict[str, Any]]:
-    """Read and validate a file: (canonical field values, file header)."""
-    p = Path(path)
-    where = str(p)
-    if not p.exists():
-        raise InputError(f"{p}: no such calibration file")
-    if p.is_dir():
-        raise InputError(f"{p}: is a folder, not a calibration file")
-    try:
-        is_hdf5 = h5py.is_hdf5(p)
-    except OSError as e:
-        raise CalibrationError(f"{where}: cannot read file ({e})") from None
-    if not is_hdf5:
-        raise CalibrationError(f"{where}: not an HDF5 file, so not an lfcam calibration (.lfcal)")
-
+def _read_hdf5(
+    source: str | os.PathLike[str] | BinaryIO, where: str | None = None, *, sealed: bool = False
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Parse a file (a path, or a file open for reading) with h5py: (raw field values,
+    file header). ``sealed``: the user block's checksum was verified, so every dataset
+    and the root carry checksums too."""
+    if isinstance(source, (str, os.PathLike)):
+        source = Path(source)
+        where = str(source) if where is None else where
+    where = "calibration file" if where is None else where
     raw: dict[str, Any] = {}
     try:
-        with h5py.File(p, "r") as f:
+        with h5py.File(source, "r") as f:
             header = _read_header(f, where)
+            version = header["format_version"]
+            if not sealed and version >= (1, 1):
+                raise CalibrationError(
+                    f"{where}: corrupt: a format {version[0]}.{version[1]} file carries a "
+                    "checksum in its HDF5 user block, and this one has none"
+                )
+            if sealed and f.attrs.get(_DIGEST_ATTR) != _digest(_attrs_items(f)):
+                raise CalibrationError(
+                    f"{where}: the root attributes do not match their checksum "
+                    "(changed or damaged after the file was written)"
+                )
             members = set(f.keys())
             missing = [name for name in _DATASETS if name not in members]
             if missing:
@@ -847,22 +1129,66 @@ def _read(path: str | os.PathLike[str]) -> tuple[dict[str, Any], dict[str, Any]]
                     f"{', '.join(repr(m) for m in missing)} (incomplete file)"
                 )
             extra = sorted(members - set(_DATASETS))
-            if extra and header["format_version"][1] <= FORMAT_VERSION[1]:
+            if extra and version[1] <= FORMAT_VERSION[1]:
                 raise CalibrationError(
                     f"{where}: unexpected dataset{'s' if len(extra) > 1 else ''} "
                     f"{', '.join(repr(e) for e in extra)} in a format "
-                    f"{header['format_version'][0]}.{header['format_version'][1]} file"
+                    f"{version[0]}.{version[1]} file"
                 )
-            # Sizes first; then every other dataset's shape is checked before it is read.
+            # Sizes first, bounded; then every other dataset's shape is checked before
+            # it is read.
             for name in ("grid", "raw_shape", "rect_shape"):
-                raw[name] = _int_pair(_read_dataset(f, name, where, None), name, where)
+                raw[name] = _int_pair(
+                    _read_dataset(f, name, where, None, sealed=sealed), name, where
+                )
+            _check_sizes(raw["grid"], raw["raw_shape"], raw["rect_shape"], where)
             shapes = _expected_shapes(raw["grid"], raw["raw_shape"], raw["rect_shape"])
             for name in _DATASETS:
                 if name not in raw:
-                    raw[name] = _read_dataset(f, name, where, shapes.get(name))
-    except (OSError, KeyError, ValueError, RuntimeError) as e:
+                    raw[name] = _read_dataset(f, name, where, shapes.get(name), sealed=sealed)
+    except (OSError, KeyError, ValueError, RuntimeError, TypeError) as e:
         raise CalibrationError(f"{where}: corrupt or truncated: {e}") from None
+    header["checksums"] = sealed
+    return raw, header
 
+
+def _read(
+    path: str | os.PathLike[str], sha256: str | None = None
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Verify, read and validate a file: (canonical field values, file header).
+
+    One open file is hashed (``sha256``, the seal) and parsed: a file renamed over
+    ``path`` meanwhile is not read in its place."""
+    if path is None or not isinstance(path, (str, os.PathLike)):
+        raise InputError(f"path: expected a calibration file's path, got {path!r}")
+    p = Path(path)
+    where = str(p)
+    if not p.exists():
+        raise InputError(f"{p}: no such calibration file")
+    if p.is_dir():
+        raise InputError(f"{p}: is a folder, not a calibration file")
+    if not p.is_file():
+        raise InputError(f"{p}: not a regular file")
+    with contextlib.ExitStack() as stack:
+        try:
+            fh = stack.enter_context(open(p, "rb"))
+            got = None if sha256 is None else file_hash(fh)
+        except OSError as e:
+            raise CalibrationError(f"{where}: cannot read file ({e.strerror or e})") from None
+        if got != sha256:
+            raise CalibrationError(f"{where}: sha256 {got} differs from the expected {sha256}")
+        sealed = _check_seal(fh, where)
+        if not sealed:
+            _probe(p, where)
+        fh.seek(0)
+        raw, header = _read_hdf5(fh, where, sealed=sealed)
+    if not sealed:
+        warnings.warn(
+            f"{where}: a format 1.0 calibration file, without checksums: damage to it "
+            "cannot be detected. Save it again to upgrade it (Calibration.load(path).save(path)).",
+            LfcamWarning,
+            stacklevel=3,
+        )
     raw["bayer"] = raw["bayer"] or None
     raw["report"] = _parse_report(raw["report"], where)
     raw["software_version"] = header["software_version"]
@@ -896,6 +1222,12 @@ def info(path: str | os.PathLike[str]) -> str:
         ("file format", f"{major}.{minor}"),
         ("created", header["created"]),
         ("sha256", file_hash(path)),
+        (
+            "checksums",
+            "verified (the file, every dataset)"
+            if header["checksums"]
+            else "none (format 1.0 file)",
+        ),
     ]
     width = max(len(k) for k, _ in head)
     return "\n".join(f"{k:<{width}}  {v}" for k, v in head) + "\n\n" + cal.summary()

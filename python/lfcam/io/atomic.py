@@ -2,7 +2,10 @@
 
 Everything lfcam writes is assembled under a hidden temporary name beside its
 destination and renamed into place when complete, so an interrupted run never leaves
-a half-written result, and readers never see one.
+a half-written result, and readers never see one. The destination's lock
+(:func:`lfcam.io.lock.path_lock`) is held meanwhile, so the temporaries of a run that
+was killed can be told from those of a live one and removed
+(:func:`lfcam.io.lock.remove_stale`).
 """
 
 from __future__ import annotations
@@ -13,18 +16,14 @@ import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
-
-import numpy as np
 
 from ..errors import InputError
-from .images import WRITABLE_EXTENSIONS, write_image
+from .lock import path_lock
 
 __all__ = [
     "atomic_folder",
     "atomic_output",
     "file_mode",
-    "write_image_atomic",
     "write_text_atomic",
 ]
 
@@ -48,19 +47,20 @@ def atomic_output(path: str | os.PathLike[str]) -> Iterator[Path]:
         raise InputError(f"{p}: folder {p.parent} does not exist")
     if p.is_dir():
         raise InputError(f"{p}: is a folder")
-    # Hidden, marked ".tmp-", and ending in the destination's extension (writers that
-    # pick a format by extension see the right one).
-    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.tmp-", suffix=p.suffix, dir=p.parent)
-    os.close(fd)
-    try:
-        yield Path(tmp)
-        with open(tmp, "rb+") as fh:
-            os.fsync(fh.fileno())
-        os.chmod(tmp, file_mode())
-        os.replace(tmp, p)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with path_lock(p):
+        # Hidden, marked ".tmp-", and ending in the destination's extension (writers that
+        # pick a format by extension see the right one).
+        fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.tmp-", suffix=p.suffix, dir=p.parent)
+        os.close(fd)
+        try:
+            yield Path(tmp)
+            with open(tmp, "rb+") as fh:
+                os.fsync(fh.fileno())
+            os.chmod(tmp, file_mode())
+            os.replace(tmp, p)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
 
 
 @contextlib.contextmanager
@@ -72,34 +72,34 @@ def atomic_folder(out: str | os.PathLike[str]) -> Iterator[Path]:
     On any error the temporary folder is removed and ``out`` is left as it was.
     """
     out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
     try:
-        yield tmp
-        mode = file_mode()
-        for p in tmp.rglob("*"):
-            os.chmod(p, (mode | 0o111) if p.is_dir() else mode)
-        os.chmod(tmp, mode | 0o111)
-        old = None
-        if out.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
-            os.replace(out, old / out.name)
-        os.replace(tmp, out)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-
-
-def write_image_atomic(path: str | os.PathLike[str], img: np.ndarray, **kw: Any) -> None:
-    """:func:`~lfcam.io.images.write_image` to a temporary name beside ``path``, then
-    rename."""
-    p = Path(path)
-    if p.suffix.lower() not in WRITABLE_EXTENSIONS:
-        raise InputError(f"{p}: unsupported output type {p.suffix!r} (use .png, .tif or .tiff)")
-    with atomic_output(p) as tmp:
-        write_image(tmp, img, **kw)
+        out.parent.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):
+        raise InputError(
+            f"{out}: cannot make its folder {out.parent}: a file is in the way"
+        ) from None
+    with path_lock(out):
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+        old: Path | None = None
+        try:
+            yield tmp
+            mode = file_mode()
+            for p in tmp.rglob("*"):
+                os.chmod(p, (mode | 0o111) if p.is_dir() else mode)
+            os.chmod(tmp, mode | 0o111)
+            if out.exists():
+                old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
+                os.replace(out, old / out.name)
+            os.replace(tmp, out)
+            if old is not None:
+                shutil.rmtree(old, ignore_errors=True)
+        except BaseException:
+            # Interrupted between the two renames: the old folder goes back under its name.
+            if old is not None and not os.path.lexists(out) and (old / out.name).is_dir():
+                os.replace(old / out.name, out)
+                shutil.rmtree(old, ignore_errors=True)
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
 
 
 def write_text_atomic(path: str | os.PathLike[str], text: str) -> None:

@@ -65,6 +65,49 @@ use crate::image::ImageView;
 use crate::parallel;
 use crate::simd::{self, Dispatch, Level};
 
+/// Defines `fn $name(a: X, ...) -> X` (or `-> Mask`) applying `$op` register by
+/// register, compiled for the target feature `$feature`: the register kernels of
+/// [`avx2`] and [`avx512`] define their `X` and `Mask` and call this.
+#[cfg(target_arch = "x86_64")]
+macro_rules! lanewise {
+    ($feature:literal, $(#[$meta:meta])* fn $name:ident($a:ident) = $op:expr) => {
+        $(#[$meta])*
+        #[inline]
+        #[target_feature(enable = $feature)]
+        fn $name(a: X) -> X {
+            let mut r = a;
+            for (r, &$a) in r.0.iter_mut().zip(&a.0) {
+                *r = $op;
+            }
+            r
+        }
+    };
+    ($feature:literal, $(#[$meta:meta])* fn $name:ident($a:ident, $b:ident) = $op:expr) => {
+        $(#[$meta])*
+        #[inline]
+        #[target_feature(enable = $feature)]
+        fn $name(a: X, b: X) -> X {
+            let mut r = a;
+            for (r, (&$a, &$b)) in r.0.iter_mut().zip(a.0.iter().zip(&b.0)) {
+                *r = $op;
+            }
+            r
+        }
+    };
+    ($feature:literal, $(#[$meta:meta])* fn $name:ident($a:ident, $b:ident) -> Mask = $op:expr) => {
+        $(#[$meta])*
+        #[inline]
+        #[target_feature(enable = $feature)]
+        fn $name(a: X, b: X) -> Mask {
+            let mut r = Mask([0; K]);
+            for (r, (&$a, &$b)) in r.0.iter_mut().zip(a.0.iter().zip(&b.0)) {
+                *r = $op;
+            }
+            r
+        }
+    };
+}
+
 #[cfg(target_arch = "x86_64")]
 mod avx2;
 #[cfg(target_arch = "x86_64")]

@@ -29,93 +29,65 @@ struct X([V; K]);
 /// Lane masks of `K` registers: all ones or all zeros per lane.
 type Mask = X;
 
-/// Defines `fn $name(a: X, ...) -> X` applying `$op` register by register.
-macro_rules! lanewise {
-    ($(#[$meta:meta])* fn $name:ident($a:ident) = $op:expr) => {
-        $(#[$meta])*
-        #[inline]
-        #[target_feature(enable = "avx2")]
-        fn $name(a: X) -> X {
-            let mut r = a;
-            for (r, &$a) in r.0.iter_mut().zip(&a.0) {
-                *r = $op;
-            }
-            r
-        }
-    };
-    ($(#[$meta:meta])* fn $name:ident($a:ident, $b:ident) = $op:expr) => {
-        $(#[$meta])*
-        #[inline]
-        #[target_feature(enable = "avx2")]
-        fn $name(a: X, b: X) -> X {
-            let mut r = a;
-            for (r, (&$a, &$b)) in r.0.iter_mut().zip(a.0.iter().zip(&b.0)) {
-                *r = $op;
-            }
-            r
-        }
-    };
-}
-
-lanewise!(fn add(a, b) = _mm256_add_ps(a, b));
-lanewise!(fn sub(a, b) = _mm256_sub_ps(a, b));
-lanewise!(fn mul(a, b) = _mm256_mul_ps(a, b));
-lanewise!(fn div(a, b) = _mm256_div_ps(a, b));
-lanewise!(fn sqrt(a) = _mm256_sqrt_ps(a));
-lanewise!(
+lanewise!("avx2", fn add(a, b) = _mm256_add_ps(a, b));
+lanewise!("avx2", fn sub(a, b) = _mm256_sub_ps(a, b));
+lanewise!("avx2", fn mul(a, b) = _mm256_mul_ps(a, b));
+lanewise!("avx2", fn div(a, b) = _mm256_div_ps(a, b));
+lanewise!("avx2", fn sqrt(a) = _mm256_sqrt_ps(a));
+lanewise!("avx2",
     /// `a.max(b)` for `b` not NaN (`vmaxps` returns `b` if `a` is NaN, as `f32::max`).
     fn max_or(a, b) = _mm256_max_ps(a, b)
 );
-lanewise!(
+lanewise!("avx2",
     /// `a.min(b)` for `b` not NaN.
     fn min_or(a, b) = _mm256_min_ps(a, b)
 );
-lanewise!(
+lanewise!("avx2",
     /// The lesser of `a` and `b` with their bits read as `i32`.
     fn min_i32(a, b) = _mm256_castsi256_ps(_mm256_min_epi32(
         _mm256_castps_si256(a),
         _mm256_castps_si256(b),
     ))
 );
-lanewise!(
+lanewise!("avx2",
     /// The greater of `a` and `b` with their bits read as `i32`.
     fn max_i32(a, b) = _mm256_castsi256_ps(_mm256_max_epi32(
         _mm256_castps_si256(a),
         _mm256_castps_si256(b),
     ))
 );
-lanewise!(fn xor(a, b) = _mm256_xor_ps(a, b));
-lanewise!(fn abs(a) = _mm256_andnot_ps(_mm256_set1_ps(-0.0), a));
-lanewise!(
+lanewise!("avx2", fn xor(a, b) = _mm256_xor_ps(a, b));
+lanewise!("avx2", fn abs(a) = _mm256_andnot_ps(_mm256_set1_ps(-0.0), a));
+lanewise!("avx2",
     /// `-x`, flipping the sign bit (as Rust's unary minus does, also for 0 and NaN).
     fn neg(a) = _mm256_castsi256_ps(_mm256_xor_si256(
         _mm256_castps_si256(a),
         _mm256_set1_epi32(i32::MIN),
     ))
 );
-lanewise!(
+lanewise!("avx2",
     /// Truncation towards zero of lanes holding small integers, as float32.
     fn trunc(a) = _mm256_cvtepi32_ps(_mm256_cvttps_epi32(a))
 );
-lanewise!(
+lanewise!("avx2",
     /// `2^k` for lanes holding integers `k` in `-126..=0`.
     fn pow2(k) = _mm256_castsi256_ps(_mm256_slli_epi32::<23>(_mm256_add_epi32(
         _mm256_cvttps_epi32(k),
         _mm256_set1_epi32(127),
     )))
 );
-lanewise!(fn lt(a, b) = _mm256_cmp_ps::<_CMP_LT_OQ>(a, b));
-lanewise!(fn le(a, b) = _mm256_cmp_ps::<_CMP_LE_OQ>(a, b));
-lanewise!(fn gt(a, b) = _mm256_cmp_ps::<_CMP_GT_OQ>(a, b));
-lanewise!(fn ge(a, b) = _mm256_cmp_ps::<_CMP_GE_OQ>(a, b));
-lanewise!(fn eq(a, b) = _mm256_cmp_ps::<_CMP_EQ_OQ>(a, b));
-lanewise!(fn and(a, b) = _mm256_and_ps(a, b));
-lanewise!(fn or(a, b) = _mm256_or_ps(a, b));
-lanewise!(
+lanewise!("avx2", fn lt(a, b) = _mm256_cmp_ps::<_CMP_LT_OQ>(a, b));
+lanewise!("avx2", fn le(a, b) = _mm256_cmp_ps::<_CMP_LE_OQ>(a, b));
+lanewise!("avx2", fn gt(a, b) = _mm256_cmp_ps::<_CMP_GT_OQ>(a, b));
+lanewise!("avx2", fn ge(a, b) = _mm256_cmp_ps::<_CMP_GE_OQ>(a, b));
+lanewise!("avx2", fn eq(a, b) = _mm256_cmp_ps::<_CMP_EQ_OQ>(a, b));
+lanewise!("avx2", fn and(a, b) = _mm256_and_ps(a, b));
+lanewise!("avx2", fn or(a, b) = _mm256_or_ps(a, b));
+lanewise!("avx2",
     /// `a & !b`.
     fn and_not(a, b) = _mm256_andnot_ps(b, a)
 );
-lanewise!(
+lanewise!("avx2",
     /// `x` where the mask `m` is set, else +0.
     fn keep(m, x) = _mm256_and_ps(m, x)
 );

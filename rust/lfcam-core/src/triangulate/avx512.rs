@@ -31,46 +31,6 @@ struct X([V; K]);
 #[derive(Clone, Copy)]
 struct Mask([__mmask16; K]);
 
-/// Defines `fn $name(a: X, ...) -> $ret` applying `$op` register by register.
-macro_rules! lanewise {
-    ($(#[$meta:meta])* fn $name:ident($a:ident) = $op:expr) => {
-        $(#[$meta])*
-        #[inline]
-        #[target_feature(enable = "avx512f")]
-        fn $name(a: X) -> X {
-            let mut r = a;
-            for (r, &$a) in r.0.iter_mut().zip(&a.0) {
-                *r = $op;
-            }
-            r
-        }
-    };
-    ($(#[$meta:meta])* fn $name:ident($a:ident, $b:ident) = $op:expr) => {
-        $(#[$meta])*
-        #[inline]
-        #[target_feature(enable = "avx512f")]
-        fn $name(a: X, b: X) -> X {
-            let mut r = a;
-            for (r, (&$a, &$b)) in r.0.iter_mut().zip(a.0.iter().zip(&b.0)) {
-                *r = $op;
-            }
-            r
-        }
-    };
-    ($(#[$meta:meta])* fn $name:ident($a:ident, $b:ident) -> Mask = $op:expr) => {
-        $(#[$meta])*
-        #[inline]
-        #[target_feature(enable = "avx512f")]
-        fn $name(a: X, b: X) -> Mask {
-            let mut r = Mask([0; K]);
-            for (r, (&$a, &$b)) in r.0.iter_mut().zip(a.0.iter().zip(&b.0)) {
-                *r = $op;
-            }
-            r
-        }
-    };
-}
-
 /// The bits of `a` as `i32` lanes, through `op`, back.
 macro_rules! as_i32 {
     ($op:ident($($arg:expr),*)) => {
@@ -78,49 +38,49 @@ macro_rules! as_i32 {
     };
 }
 
-lanewise!(fn add(a, b) = _mm512_add_ps(a, b));
-lanewise!(fn sub(a, b) = _mm512_sub_ps(a, b));
-lanewise!(fn mul(a, b) = _mm512_mul_ps(a, b));
-lanewise!(fn div(a, b) = _mm512_div_ps(a, b));
-lanewise!(fn sqrt(a) = _mm512_sqrt_ps(a));
-lanewise!(
+lanewise!("avx512f", fn add(a, b) = _mm512_add_ps(a, b));
+lanewise!("avx512f", fn sub(a, b) = _mm512_sub_ps(a, b));
+lanewise!("avx512f", fn mul(a, b) = _mm512_mul_ps(a, b));
+lanewise!("avx512f", fn div(a, b) = _mm512_div_ps(a, b));
+lanewise!("avx512f", fn sqrt(a) = _mm512_sqrt_ps(a));
+lanewise!("avx512f",
     /// `a.max(b)` for `b` not NaN (`vmaxps` returns `b` if `a` is NaN, as `f32::max`).
     fn max_or(a, b) = _mm512_max_ps(a, b)
 );
-lanewise!(
+lanewise!("avx512f",
     /// `a.min(b)` for `b` not NaN.
     fn min_or(a, b) = _mm512_min_ps(a, b)
 );
-lanewise!(
+lanewise!("avx512f",
     /// The lesser of `a` and `b` with their bits read as `i32`.
     fn min_i32(a, b) = as_i32!(_mm512_min_epi32(a, b))
 );
-lanewise!(
+lanewise!("avx512f",
     /// The greater of `a` and `b` with their bits read as `i32`.
     fn max_i32(a, b) = as_i32!(_mm512_max_epi32(a, b))
 );
-lanewise!(fn xor(a, b) = as_i32!(_mm512_xor_si512(a, b)));
-lanewise!(fn abs(a) = _mm512_abs_ps(a));
-lanewise!(
+lanewise!("avx512f", fn xor(a, b) = as_i32!(_mm512_xor_si512(a, b)));
+lanewise!("avx512f", fn abs(a) = _mm512_abs_ps(a));
+lanewise!("avx512f",
     /// `-x`, flipping the sign bit (as Rust's unary minus does, also for 0 and NaN).
     fn neg(a) = as_i32!(_mm512_xor_si512(a, _mm512_castsi512_ps(_mm512_set1_epi32(i32::MIN))))
 );
-lanewise!(
+lanewise!("avx512f",
     /// Truncation towards zero of lanes holding small integers, as float32.
     fn trunc(a) = _mm512_cvtepi32_ps(_mm512_cvttps_epi32(a))
 );
-lanewise!(
+lanewise!("avx512f",
     /// `2^k` for lanes holding integers `k` in `-126..=0`.
     fn pow2(k) = _mm512_castsi512_ps(_mm512_slli_epi32::<23>(_mm512_add_epi32(
         _mm512_cvttps_epi32(k),
         _mm512_set1_epi32(127),
     )))
 );
-lanewise!(fn lt(a, b) -> Mask = _mm512_cmp_ps_mask::<_CMP_LT_OQ>(a, b));
-lanewise!(fn le(a, b) -> Mask = _mm512_cmp_ps_mask::<_CMP_LE_OQ>(a, b));
-lanewise!(fn gt(a, b) -> Mask = _mm512_cmp_ps_mask::<_CMP_GT_OQ>(a, b));
-lanewise!(fn ge(a, b) -> Mask = _mm512_cmp_ps_mask::<_CMP_GE_OQ>(a, b));
-lanewise!(fn eq(a, b) -> Mask = _mm512_cmp_ps_mask::<_CMP_EQ_OQ>(a, b));
+lanewise!("avx512f", fn lt(a, b) -> Mask = _mm512_cmp_ps_mask::<_CMP_LT_OQ>(a, b));
+lanewise!("avx512f", fn le(a, b) -> Mask = _mm512_cmp_ps_mask::<_CMP_LE_OQ>(a, b));
+lanewise!("avx512f", fn gt(a, b) -> Mask = _mm512_cmp_ps_mask::<_CMP_GT_OQ>(a, b));
+lanewise!("avx512f", fn ge(a, b) -> Mask = _mm512_cmp_ps_mask::<_CMP_GE_OQ>(a, b));
+lanewise!("avx512f", fn eq(a, b) -> Mask = _mm512_cmp_ps_mask::<_CMP_EQ_OQ>(a, b));
 
 /// Lane-wise `op` of two masks.
 fn masks(a: Mask, b: Mask, op: impl Fn(__mmask16, __mmask16) -> __mmask16) -> Mask {
