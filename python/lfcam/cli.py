@@ -156,6 +156,12 @@ def _add_simulate(sub: Any) -> None:
         help="board distances in metres, e.g. 0.8,1,1.25",
     )
     p.add_argument(
+        "--zoom",
+        type=_floats,
+        metavar="F1,F2",
+        help="a parfocal zoom: one setting per focal length in mm, e.g. 50,75,100",
+    )
+    p.add_argument(
         "--board-tilt",
         type=float,
         metavar="DEG",
@@ -182,7 +188,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     if args.full_size:
         changes["view_size"] = (1200, 900)
     keys = ("seed", "grid", "view_size", "bit_depth", "bayer", "raw_format", "distances")
-    for key in (*keys, "board_tilt", "board_drift"):
+    for key in (*keys, "board_tilt", "board_drift", "zoom"):
         value = getattr(args, key)
         if value is not None:
             changes[key] = value
@@ -194,7 +200,9 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         cfg = SimConfig.from_toml(args.config, **changes)
     else:
         cfg = SimConfig.from_dict({}, source="command line", **changes)
-    steps = 4 + len(cfg.distances) + len(cfg.scenes) + (0 if args.no_truth else 1)
+    steps = (4 + len(cfg.distances) + len(cfg.scenes) + (0 if args.no_truth else 1)) * max(
+        1, len(cfg.zoom)
+    )
     t0 = time.perf_counter()
     with _progress(args, steps, "simulate") as bar:
         res = simulate(
@@ -210,6 +218,8 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         f"  rectified frame {cam.W_rect} x {cam.H_rect} px, Z_b = {cam.z_b:g} m, "
         f"Z_c = {cam.z_c:.4f} m"
     )
+    for f, r in res.zoom.items():
+        print(f"  zoom {f:g} mm     Z_c = {r.camera.z_c:.4f} m, {r.calibration_dir}")
     print(f"  calibration     {res.calibration_dir}")
     for name, path in res.captures.items():
         print(f"  capture         {path}  ({name})")

@@ -146,6 +146,10 @@ class SimConfig:
         Largest lateral drift of a calibration board, millimetres: each distance's
         board is moved sideways by a random amount between half this and this, in a
         random direction (seeded), as a rail does.
+    zoom : tuple of float
+        Focal lengths (mm) of a parfocal zoom's settings to simulate, each with its own
+        calibration boards, captures and truth (:meth:`zoom_setting`); empty: the one
+        setting ``focal_length``.
     raw_format : str
         ``png``, ``tiff`` or ``dng`` (camera raw: a Bayer mosaic with a black level
         and the EXIF focal length, exposure, ISO and aperture; needs ``bayer``).
@@ -183,6 +187,7 @@ class SimConfig:
     board_distance: float = 1.12
     board_tilt: float = 0.0
     board_drift: float = 0.0
+    zoom: tuple[float, ...] = ()
     raw_format: str = "png"
     seed: int = 0
 
@@ -239,6 +244,13 @@ class SimConfig:
             raise bad("board_tilt", f"must be 0 to 20 degrees, got {self.board_tilt!r}")
         if not (0 <= self.board_drift <= 100):
             raise bad("board_drift", f"must be 0 to 100 mm, got {self.board_drift!r}")
+        if self.zoom:
+            if len(set(self.zoom)) != len(self.zoom) or not all(
+                _is_real(f) and 5 <= f <= 1000 for f in self.zoom
+            ):
+                raise bad("zoom", f"need distinct focal lengths of 5 to 1000 mm, got {self.zoom!r}")
+            for f in self.zoom:
+                self.zoom_setting(f)
         if not (0 < self.exposure <= 1):
             raise bad("exposure", f"must be in (0, 1], got {self.exposure!r}")
 
@@ -267,6 +279,20 @@ class SimConfig:
     @property
     def raw_shape(self) -> tuple[int, int]:
         return (self.grid[0] * self.view_size[1], self.grid[1] * self.view_size[0])
+
+    def zoom_setting(self, focal_length_mm: float) -> SimConfig:
+        """This camera at another setting of a parfocal zoom: the thin-lens equivalent of
+        focal length ``focal_length_mm`` whose principal plane moves with it so that the
+        reference distance's image stays where it was (the lenslets stay in focus):
+        ``D' = f' Z_b / (Z_b - f') + (D - f Z_b / (Z_b - f))``."""
+        f, d, z = self.focal_length, self.lens_to_lenslet, self.z_b
+        f2 = focal_length_mm * 1e-3
+        if not f2 < z:
+            raise InputError(
+                f"simulator config 'zoom': {focal_length_mm:g} mm is not shorter than Z_b = {z:g} m"
+            )
+        d2 = f2 * z / (z - f2) + (d - f * z / (z - f))
+        return dataclasses.replace(self, focal_length=f2, lens_to_lenslet=d2, zoom=())
 
     def replace(self, **changes: Any) -> SimConfig:
         """A copy with some fields changed (validated)."""
