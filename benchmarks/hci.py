@@ -16,7 +16,8 @@ the same run: OpenCV DIS (MEDIUM preset) from the reference to each view and pla
 least squares of the flows onto the offsets. Times are medians over the repeats
 (flows included). ``--ablation`` adds lfcam without the parallax fill and without
 the backward flows; ``--with name:key=value,...`` adds lfcam with those
-:class:`lfcam.DepthParams` fields (values as Python literals).
+:class:`lfcam.DepthParams` fields (values as Python literals; ``refine={...}`` gives
+a :class:`lfcam.RefineParams` of those fields, ``refine={}`` its defaults).
 
 Targets (docs/tuning.md, "Depth"): antinous 3 x 4 BadPix0.07 <= 5%, MSE x 100 <= 2;
 9 x 9 no worse than 3 x 4; stilllife BadPix0.07 <= 30%, BadPix0.3 <= 6%,
@@ -94,12 +95,22 @@ def timed(fn: Callable[[], np.ndarray], repeats: int) -> tuple[np.ndarray, float
 
 
 def variant(spec: str) -> tuple[str, dict[str, object]]:
-    """``name:key=value,key=value`` -> (name, DepthParams keywords)."""
+    """``name:key=value,key=value`` -> (name, DepthParams keywords); commas inside
+    brackets belong to the value."""
     name, _, fields = spec.partition(":")
+    items, depth, start = [], 0, 0
+    for k, ch in enumerate(fields + ","):
+        depth += ch in "([{"
+        depth -= ch in ")]}"
+        if ch == "," and depth == 0:
+            items.append(fields[start:k])
+            start = k + 1
     kw: dict[str, object] = {}
-    for item in filter(None, fields.split(",")):
+    for item in filter(None, (i.strip() for i in items)):
         key, _, value = item.partition("=")
-        kw[key.strip()] = ast.literal_eval(value.strip())
+        val = ast.literal_eval(value.strip())
+        # refine={...}: the fields of a RefineParams.
+        kw[key.strip()] = lfcam.RefineParams(**val) if key.strip() == "refine" else val
     return name, kw
 
 

@@ -335,6 +335,51 @@ def nan_median_vs_numpy(size: str) -> Case:
     )
 
 
+# Plane sweep of the depth refinement: a 3 x 4 grid of textured views at a smooth
+# parallax, 16 candidates, all views and 4 half-planes (the numpy reference holds the
+# whole cost volume, hence the modest sizes).
+_SWEEP_SIZES = {"small": (192, 256), "full": (384, 512)}
+
+
+@row("plane_sweep")
+def plane_sweep_vs_numpy(size: str) -> Case:
+    from lfcam.calibration.pattern import procedural_texture
+    from lfcam.processing.refine import (
+        RefineParams,
+        half_planes,
+        plane_sweep_numpy,
+        sweep_costs,
+    )
+
+    h, w = _SWEEP_SIZES[size]
+    rng = np.random.default_rng(5)
+    tex = procedural_texture(h + 40, w + 40, rng).astype(np.float32)
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    s_true = (0.5 + 0.8 * np.sin(xx / 60.0) * np.cos(yy / 45.0)).astype(np.float32)
+    grid = [(r, c) for r in range(3) for c in range(4)]
+    offsets = np.array([[-(c - 1), -(r - 1)] for r, c in grid], np.float64)
+    views = np.stack(
+        [
+            cv2.remap(tex, xx + 20 - o[0] * s_true, yy + 20 - o[1] * s_true, cv2.INTER_LINEAR)
+            for o in offsets
+        ]
+    )
+    cands = np.linspace(-0.8, 1.8, 16).astype(np.float32)
+    subsets = half_planes(offsets, 5, 2)
+    params = RefineParams()
+
+    def same(ours: Any, theirs: Any) -> bool:
+        return bool(np.mean(np.abs(ours[..., 0] - theirs[..., 0]) <= 1e-4) >= 0.999)
+
+    return Case(
+        lfcam=lambda: sweep_costs(views, offsets, 5, cands, subsets, params),
+        reference=lambda: plane_sweep_numpy(views, offsets, 5, cands, subsets, params),
+        reference_name="numpy, same cost",
+        shape=f"12x{w}x{h}x3 f32, 16 s, 5 subsets",
+        same=same,
+    )
+
+
 # Triangulation: 11 flows from the reference (row 1, column 1 of the 3x4 grid) at 1 Mpx,
 # the target size; the rectified frame of the rectify row is 2.7 Mpx.
 _TRIANGULATE_SIZES = {"small": (360, 480), "full": (1000, 1000)}
@@ -477,7 +522,7 @@ def superres_2x(size: str) -> Case:
         return cv2.resize(np.nan_to_num(ref), (2 * rw, 2 * rh), interpolation=cv2.INTER_CUBIC)
 
     return Case(
-        lfcam=lambda: lfcam.super_resolve(raw, cal, s, 2),
+        lfcam=lambda: lfcam.super_resolve(raw, cal, parallax=s, factor=2),
         reference=bicubic,
         reference_name="cv2.resize bicubic x2 of the reference view (no SR)",
         shape=f"12 views {rw}x{rh} -> {2 * rw}x{2 * rh}",

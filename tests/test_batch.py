@@ -17,9 +17,11 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import lfcam
+from lfcam.batch.folder import find_captures
 from lfcam.batch.pool import WorkerDied, run_pool
 from lfcam.calibration.calibrate import run_calibration
 from lfcam.errors import LfcamError
@@ -97,7 +99,7 @@ def test_lock_excludes_other_holders_and_is_removed(tmp_path) -> None:
     t.start()
     assert held.wait(10)
     assert lock_path(target).is_file()
-    with pytest.raises(LockBusy, match=r"\.cap\.lock"), path_lock(target, wait=False):
+    with pytest.raises(LockBusy, match=r"\.cap\.lfcam-lock"), path_lock(target, wait=False):
         pass
     release.set()
     t.join()
@@ -111,7 +113,7 @@ def test_remove_stale_only_what_no_run_holds(tmp_path) -> None:
     d = tmp_path
     (d / ".a.tmp-abcd1234").mkdir()  # a folder being written when its run died
     (d / ".a.tmp-abcd1234" / "depth.tiff").write_bytes(b"x")
-    (d / ".a.lock").write_bytes(b"")  # its lock file
+    (d / ".a.lfcam-lock").write_bytes(b"")  # its lock file
     (d / ".b.old-k_9zzzzz" / "b").mkdir(parents=True)  # set aside by a dead --overwrite
     (d / ".b.old-k_9zzzzz" / "b" / "result.json").write_text("{}")
     (d / ".c.old-qqqqqqqq" / "c").mkdir(parents=True)  # set aside, replacement renamed in
@@ -119,7 +121,8 @@ def test_remove_stale_only_what_no_run_holds(tmp_path) -> None:
     (d / "c" / "result.json").write_text('{"new": 1}')
     (d / ".p.png.tmp-0a1b2c3d.png").write_bytes(b"half a file")
     (d / ".live.tmp-abcdefgh").mkdir()  # a live run's: its lock is held
-    keep = [".other", ".x.tmp-short", "y.tmp-abcdefgh", ".z.tmp-ABCDEFGH", "c"]
+    # Not lfcam's: ".q.lock" is another program's lock file, "c" a complete output.
+    keep = [".other", ".x.tmp-short", "y.tmp-abcdefgh", ".z.tmp-ABCDEFGH", ".q.lock", "c"]
     for name in keep[:-1]:
         (d / name).write_bytes(b"not lfcam's")
     held, release = threading.Event(), threading.Event()
@@ -160,6 +163,12 @@ def _bad_init() -> None:
     raise OSError("cannot start")
 
 
+def _work_then_exit(state: int, task: int) -> int:
+    if task == 1:  # dies just after sending its result, before the next task reaches it
+        threading.Timer(0.1, os._exit, (0,)).start()
+    return state * task
+
+
 def test_pool_reports_a_dead_worker_and_goes_on() -> None:
     results = dict(run_pool(list(range(7)), 2, _init, (10,), _work))
     assert results.pop(2) == WorkerDied(-signal.SIGKILL)
@@ -169,9 +178,62 @@ def test_pool_reports_a_dead_worker_and_goes_on() -> None:
         list(run_pool([1, 2], 2, _bad_init, (), _work))
 
 
+def _init_then_exit(x: int) -> int:
+    threading.Timer(0.1, os._exit, (0,)).start()  # dies soon after it says it is ready
+    return x
+
+
+def test_pool_worker_dead_before_its_next_task(monkeypatch) -> None:
+    """A task sent to a worker that has just died is run by its replacement."""
+    from lfcam.batch import pool
+
+    real = pool.wait
+
+    def slow_wait(conns):  # type: ignore[no-untyped-def]
+        ready = real(conns)
+        time.sleep(0.4)  # long enough for the worker to have exited
+        return ready
+
+    monkeypatch.setattr(pool, "wait", slow_wait)
+    results = dict(run_pool([0, 1, 2, 3], 1, _init, (10,), _work_then_exit))
+    assert results == {k: 10 * k for k in range(4)}
+    # Workers that never live to take a task: an error, not an endless restart.
+    with pytest.raises(LfcamError, match="worker processes keep dying before they get a task"):
+        list(run_pool([0, 1], 1, _init_then_exit, (10,), _work))
+
+
 # ---------------------------------------------------------------------------
 # process_folder
 # ---------------------------------------------------------------------------
+def test_nested_output_folders_refused(tmp_path) -> None:
+    inp, out = tmp_path / "in", tmp_path / "out"
+    (inp / "sub").mkdir(parents=True)
+    for name in ("sub.png", "sub/x.png"):
+        (inp / name).write_bytes(b"")
+    with pytest.raises(lfcam.InputError) as e:
+        find_captures(inp, out)
+    assert str(e.value) == (
+        f"{inp / 'sub/x.png'}: its output folder {out / 'sub/x'} is inside that of"
+        f" {inp / 'sub.png'} ({out / 'sub'}), which writing it would replace"
+    )
+    # Also across inputs: a file and a folder.
+    other = tmp_path / "other"
+    (other / "sub").mkdir(parents=True)
+    (other / "sub" / "y.png").write_bytes(b"")
+    with pytest.raises(lfcam.InputError, match=r"/y\.png: its output folder .* is inside"):
+        find_captures([inp / "sub.png", other], out)
+    (inp / "sub.png").unlink()
+    (inp / "sub" / "x.tif").write_bytes(b"")
+    with pytest.raises(lfcam.InputError) as e:
+        find_captures(inp, out)
+    assert str(e.value) == (
+        f"{inp / 'sub/x.tif'}: has the same output folder as {inp / 'sub/x.png'} ({out / 'sub/x'})"
+    )
+    (inp / "sub" / "x.tif").unlink()
+    (inp / "subway.png").write_bytes(b"")  # a name that starts like another is fine
+    assert [t.out for t in find_captures(inp, out)] == [str(out / "sub/x"), str(out / "subway")]
+
+
 def test_jobs_2_identical_to_jobs_1_bad_capture_reported(small, tmp_path) -> None:
     bad = tmp_path / "broken.png"
     bad.write_bytes(b"\x89PNG\r\n\x1a\n not really")
@@ -182,7 +244,7 @@ def test_jobs_2_identical_to_jobs_1_bad_capture_reported(small, tmp_path) -> Non
         inputs, small["cal"], out, jobs=2, progress=lambda o, k, n: seen.append((o.status, k, n))
     )
     assert [s for s, _ in summary.failed] == [str(bad)]
-    assert summary.failed[0][1].startswith(f"{bad}: not a readable")  # the reader's reason
+    assert summary.failed[0][1] == f"{bad}: not a readable PNG (no PNG header)"  # the reader's
     assert len(summary.done) == len(NAMES)
     assert (summary.workers, summary.threads) == (2, max(1, (os.cpu_count() or 1) // 2))
     assert [(k, n) for _, k, n in seen] == [(k, 7) for k in range(1, 8)]
@@ -197,6 +259,67 @@ def test_jobs_2_identical_to_jobs_1_bad_capture_reported(small, tmp_path) -> Non
     assert [(k, n) for _, k, n in seen] == [(k, 7) for k in range(1, 8)]
     with pytest.raises(lfcam.InputError, match=r"^sav_views: not an option"):
         lfcam.process_folder(inputs, small["cal"], out, sav_views=True)
+
+
+def test_options_checked_and_normalised(small, tmp_path, monkeypatch) -> None:
+    cal = lfcam.Calibration.load(small["cal"])
+    one = small["in"] / "board.png"
+    out = tmp_path / "out"
+    for name, value, message in [
+        ("superres", True, "superres: expected a factor from 1 to 4, got True"),
+        ("interp", "nearest", "interp: expected one of 'bilinear', "),
+        ("interp", None, "interp: expected one of 'bilinear', "),
+        ("refocus", 2.5, "refocus: expected a sequence of distances, got 2.5"),
+        ("refocus", "3", "refocus: expected a sequence of distances, got '3'"),
+        ("refocus", [float("inf")], "refocus: distances must be beyond Z_c"),
+    ]:
+        with pytest.raises(lfcam.InputError) as e:
+            lfcam.process_folder(one, cal, out, **{name: value})
+        assert str(e.value).startswith(message), (name, value)
+    assert not out.exists()
+    # A list of distances is stored as a tuple in the frozen options the workers get.
+    from lfcam.batch import folder
+
+    seen = []
+
+    def record(task, cal, options, extra, **kw):  # type: ignore[no-untyped-def]
+        seen.append(options)
+        return lfcam.batch.CaptureOutcome(task.source, task.out, "done")
+
+    monkeypatch.setattr(folder, "run_capture", record)
+    z = cal.z_c + 1.0
+    lfcam.process_folder(one, cal, out, refocus=[z, int(z) + 2])
+    assert [o.refocus for o in seen] == [(z, float(int(z) + 2))]
+    assert all(type(v) is float for v in seen[0].refocus)
+
+
+def test_capture_read_once_and_unreadable_exif_only_warns(small, tmp_path, monkeypatch) -> None:
+    """Pixels and EXIF come from one read of the file; EXIF that exifread cannot parse
+    leaves the metadata unknown, and the capture is processed."""
+    exifread = pytest.importorskip("exifread")
+    from lfcam.io import images, raw, read_image, write_image
+
+    tif = tmp_path / "board.tif"
+    write_image(tif, read_image(small["in"] / "board.png"))
+
+    def broken(*args, **kw):  # type: ignore[no-untyped-def]
+        raise IndexError("list index out of range")
+
+    def again(path, limit):  # type: ignore[no-untyped-def]
+        raise AssertionError(f"{path} read a second time")
+
+    monkeypatch.setattr(exifread, "process_file", broken)
+    monkeypatch.setattr(images, "read_file_bytes", again)
+    monkeypatch.setattr(raw, "read_file_bytes", again)
+    with pytest.warns(lfcam.LfcamWarning, match=r"board\.tif: unreadable EXIF metadata"):
+        summary = lfcam.process_folder(tif, small["cal"], tmp_path / "out")
+    monkeypatch.undo()
+    assert summary.failed == ()
+    assert summary.done == (str(tif),)
+    result = json.loads((tmp_path / "out" / "board" / "result.json").read_text())
+    assert result["capture"]["focal_length_mm"] is None
+    ref = read_image(small["ref"] / "board" / "depth.tiff")
+    np.testing.assert_array_equal(read_image(tmp_path / "out" / "board" / "depth.tiff"), ref)
 
 
 def test_worker_killed_mid_batch(small, tmp_path) -> None:
@@ -228,11 +351,11 @@ def _kill_a_lock_holder(out: Path, killed: list[str]) -> None:
     append the capture's name to ``killed``."""
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:
-        for lock in out.rglob(".*.lock") if out.is_dir() else []:
+        for lock in out.rglob(".*.lfcam-lock") if out.is_dir() else []:
             pid = _lock_holder(lock)
             if pid is not None and pid != os.getpid():
                 os.kill(pid, signal.SIGKILL)
-                killed.append(lock.name[1 : -len(".lock")])
+                killed.append(lock.name[1 : -len(".lfcam-lock")])
                 return
         time.sleep(0.002)
 
@@ -317,7 +440,9 @@ def test_kill_and_rerun(small, tmp_path) -> None:
     # 2. in the middle of a capture (its lock is held), after another one completed.
     p = _lfcam(*args)
     _wait_for(
-        lambda: out.is_dir() and list(out.rglob("result.json")) and list(out.rglob(".*.lock")),
+        lambda: (
+            out.is_dir() and list(out.rglob("result.json")) and list(out.rglob(".*.lfcam-lock"))
+        ),
         "a second capture",
         p,
     )
@@ -330,7 +455,7 @@ def test_kill_and_rerun(small, tmp_path) -> None:
     # 4. --jobs 2: one worker in the middle of a capture, then the parent.
     p = _lfcam(*args, "--jobs", "2")
     lock = _wait_for(
-        lambda: [k for k in out.rglob(".*.lock") if _lock_holder(k) not in (None, p.pid)],
+        lambda: [k for k in out.rglob(".*.lfcam-lock") if _lock_holder(k) not in (None, p.pid)],
         "a worker's capture",
         p,
     )
@@ -342,7 +467,7 @@ def test_kill_and_rerun(small, tmp_path) -> None:
         lambda: len([w for w in _children(p.pid) if _alive(w)]) >= len(workers), "a new worker", p
     )
     workers = _children(p.pid)
-    _wait_for(lambda: [k for k in out.rglob(".*.lock") if k != lock[0]], "another capture", p)
+    _wait_for(lambda: [k for k in out.rglob(".*.lfcam-lock") if k != lock[0]], "another capture", p)
     _kill(p)
     deadline = time.monotonic() + 15
     while time.monotonic() < deadline and any(_alive(w) for w in workers):
@@ -382,6 +507,44 @@ def dask_client():
         distributed.Client(cluster) as client,
     ):
         yield client
+
+
+def test_cluster_without_workers_is_an_input_error() -> None:
+    """A fresh scheduler (dask-jobqueue jobs still queued): no worker joins in time."""
+    distributed = pytest.importorskip("distributed")
+    from lfcam.batch.cluster import cluster_shape
+
+    with (
+        distributed.LocalCluster(n_workers=0, processes=False, dashboard_address=":0") as cluster,
+        distributed.Client(cluster) as client,
+    ):
+        t0 = time.monotonic()
+        with pytest.raises(lfcam.InputError) as e:
+            cluster_shape(client, 1.0)
+        assert time.monotonic() - t0 < 10
+        assert str(e.value) == (
+            f"cluster LocalCluster at {cluster.scheduler_address}: no Dask worker joined"
+            " within 1 s (are its jobs still waiting in the queue?)"
+        )
+        cluster.scale(1)
+        assert cluster_shape(client, 60.0) == (1, max(1, os.cpu_count() or 1))
+
+
+def test_cluster_task_reason_worded_as_locally(tmp_path, monkeypatch) -> None:
+    """A worker that cannot load the calibration says why as the local pool would."""
+    from lfcam.batch import cluster
+    from lfcam.batch.task import CaptureTask, ProcessOptions
+
+    cal = tmp_path / "cam.lfcal"
+    cal.write_bytes(b"not the batch's")
+    monkeypatch.setattr(cluster, "_setup_worker", lambda: (1, 1))
+    got = cluster._cluster_task(
+        CaptureTask("a.png", str(tmp_path / "a")), str(cal), "0" * 64, ProcessOptions(), {}, False
+    )
+    assert got.status == "failed"
+    assert got.reason == (
+        f"{cal}: sha256 {lfcam.io.file_hash(cal)} differs from the expected {'0' * 64}"
+    )
 
 
 def test_cluster_identical_to_jobs_1_calibration_once(small, dask_client, tmp_path) -> None:

@@ -1026,3 +1026,83 @@ def test_non_utf8_file_name(good_file: Path, tmp_path: Path) -> None:
     (tmp_path / name).write_bytes(b"junk")
     with pytest.raises(CalibrationError, match="not an HDF5 file"):
         Calibration.load(tmp_path / name)
+
+
+def test_format_1_0_probe_succeeds_unpatched(
+    good_file: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The child process really reads a good 1.0 file and says so (the lfcam it imports
+    is this one, whatever PYTHONPATH says)."""
+    from lfcam.calibration import file as calfile
+
+    old = unsealed(good_file, tmp_path / "old.lfcal")
+    calfile._probe(old, str(old))
+    monkeypatch.delenv("PYTHONPATH", raising=False)
+    calfile._probe(old, str(old))
+
+
+@pytest.mark.parametrize(
+    ("child", "why"),
+    [
+        (
+            "import lfcam_missing",
+            "exit code 1: ModuleNotFoundError: No module named 'lfcam_missing'",
+        ),
+        ("pass", "exit code 0"),  # ended without its success marker
+    ],
+)
+def test_format_1_0_failed_probe_is_an_error(
+    good_file: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, child: str, why: str
+) -> None:
+    import subprocess
+
+    from lfcam.calibration import file as calfile
+
+    old = unsealed(good_file, tmp_path / "old.lfcal")
+    real = subprocess.run
+
+    def failing(args: list[Any], **kw: Any) -> Any:
+        return real([args[0], "-c", child], **kw)
+
+    monkeypatch.setattr(calfile.subprocess, "run", failing)
+    with pytest.raises(CalibrationError) as e:
+        Calibration.load(old)
+    assert str(e.value) == (
+        f"{old}: a format 1.0 file is read in a child process first, and that failed ({why})"
+    )
+
+
+def test_the_file_hashed_is_the_file_parsed(
+    good_file: Path, metric_calib: Calibration, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Another file renamed over the path between the checksum and the parse is not read."""
+    from lfcam.calibration import file as calfile
+
+    other = Calibration(**make_values(seed=1)).save(tmp_path / "other.lfcal")
+    real = calfile._check_seal
+
+    def then_swap(fh: Any, where: str) -> bool:
+        sealed = real(fh, where)
+        os.replace(other, good_file)
+        return sealed
+
+    monkeypatch.setattr(calfile, "_check_seal", then_swap)
+    digest = file_hash(good_file)
+    assert_same(metric_calib, Calibration.load(good_file, sha256=digest))
+    monkeypatch.undo()
+    assert not np.array_equal(Calibration.load(good_file).offsets, metric_calib.offsets)
+    with pytest.raises(CalibrationError) as e:
+        Calibration.load(good_file, sha256=digest)
+    assert str(e.value) == (
+        f"{good_file}: sha256 {file_hash(good_file)} differs from the expected {digest}"
+    )
+
+
+def test_file_hash_offset_and_open_files(good_file: Path) -> None:
+    data = good_file.read_bytes()
+    assert file_hash(good_file, offset=512) == hashlib.sha256(data[512:]).hexdigest()
+    with open(good_file, "rb") as fh:
+        assert file_hash(fh) == hashlib.sha256(data).hexdigest()
+        assert file_hash(fh, offset=512) == hashlib.sha256(data[512:]).hexdigest()
+    # The seal in the user block is the hash of what follows it.
+    assert data.startswith(b"lfcam-calibration sha256 " + file_hash(good_file, offset=512).encode())

@@ -24,6 +24,7 @@ BADPIX_3X4_B15 = 7.53
 MSE_3X4_B15 = 4.74
 ANTINOUS = SHARED_DATA / "hci4d_antinous"
 BACKGAMMON = SHARED_DATA / "hci4d_backgammon"
+LYTRO = SHARED_DATA / "lytro_illum_2067"
 
 HCI_CFG = """[intrinsics]
 focal_length_mm = 100.0
@@ -346,6 +347,46 @@ def test_subsets_and_reference(tmp_path, grid5) -> None:
     for bad in ("3:6", "a:b,1:2", "1:2:3:4,1", "1:4:0,1:3"):
         with pytest.raises(InputError, match="views"):
             LightField.from_folder(folder, views=bad)
+
+
+def test_row_col_names_with_a_shared_prefix(tmp_path, grid5) -> None:
+    """Lytro-style exports put the capture number first: 2067_05_05.png, 1-based."""
+    write_row_col(tmp_path / "lytro", grid5, "2067_{r:02d}_{c:02d}.png", first=1)
+    lf = LightField.from_folder(tmp_path / "lytro")
+    assert lf.layout == "row_col"
+    assert lf.rows == [1, 2, 3, 4, 5]
+    assert lf.cols == [1, 2, 3, 4, 5]
+    assert lf.reference_rc == (3, 3)
+    np.testing.assert_array_equal(lf.views, grid5.reshape(25, 48, 64, 3))
+    # Different leading numbers: two captures in one folder, which is refused.
+    write_row_col(tmp_path / "mixed", grid5[:2, :2], "2067_{r:02d}_{c:02d}.png")
+    write_image(tmp_path / "mixed" / "2068_00_02.png", grid5[0, 2])
+    with pytest.raises(InputError, match=r"leading numbers differ .*2068_00_02\.png"):
+        LightField.from_folder(tmp_path / "mixed")
+
+
+@pytest.mark.skipif(not LYTRO.is_dir(), reason="shared data not available")
+def test_depth_views_on_the_lytro_capture(tmp_path, capsys) -> None:
+    out = tmp_path / "lytro"
+    args = ["depth-views", str(LYTRO), "-o", str(out), "--views", "4:7,4:7"]
+    assert main(args) == 0
+    io = capsys.readouterr()
+    assert "3x3 light field" in io.out
+    info = json.loads((out / "result.json").read_text())
+    assert info["rows"] == [4, 5, 6]
+    assert info["cols"] == [4, 5, 6]
+    assert info["reference"] == [5, 5]
+    # A real capture: most of the reference view gets a disparity, within the
+    # small range of a Lytro's sub-aperture baseline.
+    assert info["statistics"]["coverage"] > 0.8
+    lo, hi = info["statistics"]["disparity_p1_p99_px"]
+    assert -3 < lo < hi < 3
+    # Progress as log lines (stderr is not a terminal here), one per stage.
+    assert io.err.count("depth-views ") == 3
+    assert "depth-views 3/3" in io.err
+    assert "s elapsed" in io.err
+    assert main([*args, "--overwrite", "--quiet"]) == 0
+    assert "depth-views" not in capsys.readouterr().err
 
 
 def test_folder_errors(tmp_path, grid5) -> None:

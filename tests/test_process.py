@@ -13,6 +13,7 @@ import tifffile
 import lfcam
 from lfcam.calibration.calibrate import run_calibration
 from lfcam.cli import main
+from lfcam.outputs import reference_box
 from lfcam.pipeline import process_capture
 from lfcam.products.geometry import points_from_depth
 from lfcam.sim import SimConfig
@@ -214,7 +215,12 @@ def test_process_command(reference_camera, tmp_path, capsys) -> None:
         assert info["calibration_sha256"] == lfcam.io.file_hash(calf)
         z = tifffile.imread(d / "depth.tiff")
         assert z.dtype == np.float32
-        assert z.shape == cam.cal.rect_shape
+        # Cropped to the reference view's valid box, which result.json records.
+        x0, y0, w, h = reference_box(cam.cal)
+        assert info["frame"]["offset_xy"] == [x0, y0]
+        assert z.shape == (h, w) == tuple(info["frame"]["shape"])
+        assert h < cam.cal.rect_shape[0]
+        assert w < cam.cal.rect_shape[1]
         ply = (d / "points.ply").read_bytes()
         assert ply.startswith(b"ply\nformat binary_little_endian 1.0")
         n = int(ply.split(b"element vertex ")[1].split(b"\n")[0])

@@ -9,13 +9,14 @@ import sys
 
 import numpy as np
 import pytest
-import rawpy
 
 import lfcam
 from lfcam.cli import main
+from lfcam.errors import LfcamWarning
 from lfcam.io import (
     CaptureMetadata,
     demosaic,
+    files,
     read_image,
     read_metadata,
     read_raw,
@@ -24,11 +25,20 @@ from lfcam.io import (
 )
 from lfcam.io.raw import read_camera_raw
 from lfcam.sim import SimConfig
-from lfcam.sim.scenes import _mosaic
+
+rawpy = pytest.importorskip("rawpy")
 
 META = CaptureMetadata(
     focal_length_mm=75.0, exposure_s=0.004, iso=400.0, f_number=2.8, make="Acme", model="LF-1"
 )
+
+
+def _mosaic(rgb: np.ndarray, cfa: str) -> np.ndarray:
+    """The Bayer mosaic of an RGB image: each pixel keeps the colour ``cfa`` gives it."""
+    out = np.empty(rgb.shape[:2], rgb.dtype)
+    for k, (dy, dx) in enumerate([(0, 0), (0, 1), (1, 0), (1, 1)]):
+        out[dy::2, dx::2] = rgb[dy::2, dx::2, "RGB".index(cfa[k])]
+    return out
 
 
 @pytest.mark.parametrize("cfa", ["RGGB", "BGGR", "GRBG", "GBRG"])
@@ -161,3 +171,88 @@ def test_dng_camera_calibrates_and_processes(tmp_path, capsys) -> None:
     z_true = read_image(sim / "truth" / "planes" / "depth.tiff")
     rel = np.abs(depth - z_true) / z_true
     assert np.nanmedian(rel[cal.masks[cal.reference]]) <= 0.01
+
+
+def test_raw_size_checked_before_decoding(tmp_path, monkeypatch) -> None:
+    """The sensor's declared size is refused before LibRaw unpacks it."""
+    path = tmp_path / "a.dng"
+    write_dng(path, np.zeros((32, 48), np.uint16), "RGGB", white_level=4095)
+    assert read_camera_raw(path, mosaic=True)[0].shape == (32, 48)
+    monkeypatch.setattr(files, "MAX_IMAGE_PIXELS", 32 * 48 - 1)
+    for read in (
+        lambda: read_camera_raw(path, mosaic=True),
+        lambda: read_image(path),
+        lambda: read_raw(path, "RGGB"),
+    ):
+        with pytest.raises(lfcam.InputError) as e:
+            read()
+        assert str(e.value) == (
+            f"{path}: the header declares a 48 x 32 image, larger than lfcam reads"
+            f" (65535 px a side, {32 * 48 - 1} px in all)"
+        )
+    monkeypatch.setattr(files, "MAX_IMAGE_PIXELS", 1 << 28)
+    monkeypatch.setattr(files, "MAX_IMAGE_SIDE", 47)
+    with pytest.raises(lfcam.InputError, match=r"a 48 x 32 image, larger than lfcam reads"):
+        read_image(path)
+
+
+def test_metadata_from_the_bytes_read_and_damage_only_warns(tmp_path, monkeypatch) -> None:
+    path = tmp_path / "a.dng"
+    write_dng(path, np.zeros((32, 48), np.uint16), "RGGB", white_level=4095, metadata=META)
+    data = path.read_bytes()
+    path.unlink()  # parsed from the bytes given, not read again
+    assert read_metadata(path, data=data) == META
+    assert read_raw(path, "RGGB", data=data).shape == (32, 48, 3)
+    exifread = pytest.importorskip("exifread")
+
+    def broken(*args, **kw):  # type: ignore[no-untyped-def]
+        raise IndexError("list index out of range")
+
+    monkeypatch.setattr(exifread, "process_file", broken)
+    with pytest.warns(LfcamWarning) as w:
+        assert read_metadata(path, data=data) == CaptureMetadata()
+    assert [str(x.message) for x in w] == [
+        f"{path}: unreadable EXIF metadata (IndexError: list index out of range);"
+        " recorded as unknown"
+    ]
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "message"),
+    [
+        ("iso", 70_000.0, "metadata.iso: expected 1 to 65535, got 70000.0"),
+        ("iso", float("nan"), "metadata.iso: expected 1 to 65535, got nan"),
+        ("exposure_s", float("inf"), "metadata.exposure_s: expected 1e-06 to 4294.97 s, got inf"),
+        ("exposure_s", 1e-9, "metadata.exposure_s: expected 1e-06 to 4294.97 s, got 1e-09"),
+        ("f_number", -2.0, "metadata.f_number: expected 0.01 to 4.29497e+07, got -2.0"),
+        ("focal_length_mm", 5e6, "metadata.focal_length_mm: expected 0.001 to 4.29497e+06 mm"),
+    ],
+)
+def test_write_dng_refuses_metadata_out_of_range(tmp_path, field, value, message) -> None:
+    path = tmp_path / "a.dng"
+    meta = CaptureMetadata(**{field: value})
+    with pytest.raises(lfcam.InputError) as e:
+        write_dng(path, np.zeros((32, 48), np.uint16), "RGGB", metadata=meta)
+    assert str(e.value).startswith(message)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_write_dng_is_atomic(tmp_path, monkeypatch) -> None:
+    import tifffile
+
+    path = tmp_path / "a.dng"
+    write_dng(path, np.zeros((32, 48), np.uint16), "RGGB", white_level=4095)
+    before = path.read_bytes()
+    real = tifffile.imwrite
+
+    def half(file, *args, **kw):  # type: ignore[no-untyped-def]
+        real(file, *args, **kw)
+        with open(file, "r+b") as fh:
+            fh.truncate(100)
+        raise OSError("disk full")
+
+    monkeypatch.setattr(tifffile, "imwrite", half)
+    with pytest.raises(OSError, match="disk full"):
+        write_dng(path, np.ones((32, 48), np.uint16), "RGGB", white_level=4095)
+    assert path.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["a.dng"]

@@ -317,7 +317,9 @@ def test_mesh_and_points_read_back(reference_camera, processed, tmp_path) -> Non
     np.testing.assert_array_equal(faces, mesh.faces)
     rgb = np.column_stack([v["red"], v["green"], v["blue"]])
     lin = ref[mesh.index[:, 0], mesh.index[:, 1]].astype(np.float64)
-    expect = np.round(np.clip(lin, 0, 1) ** (1 / 2.2) * 255)
+    # sRGB (IEC 61966-2-1), written out here as the reference.
+    v = np.clip(lin, 0, 1)
+    expect = np.round(np.where(v <= 0.0031308, 12.92 * v, 1.055 * v ** (1 / 2.4) - 0.055) * 255)
     np.testing.assert_array_equal(rgb, expect.astype(np.uint8))
     # Vertices are the point cloud's points: same positions for the same pixels.
     pts, idx, _ = points_from_depth(res.depth.depth, cal)

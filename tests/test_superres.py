@@ -3,6 +3,8 @@ ground truth (``truth/<scene>/reference_2x.tiff``)."""
 
 from __future__ import annotations
 
+import json
+
 import cv2
 import numpy as np
 import pytest
@@ -10,6 +12,7 @@ import tifffile
 
 import lfcam
 from lfcam import _lfcam
+from lfcam.io import read_tiff_description
 from lfcam.pipeline import process_capture
 from lfcam.products.refocus import parallax_at_depth
 from lfcam.products.superres import (
@@ -246,7 +249,7 @@ def test_super_resolve_bad_arguments(reference_camera, kwargs, arg) -> None:
     raw = np.zeros((*cal.raw_shape, 3), np.uint8)
     s = np.zeros(tuple(cal.rect_shape), np.float32)
     with pytest.raises(lfcam.InputError, match=f"^{arg}:"):
-        lfcam.super_resolve(raw, cal, s, **kwargs)
+        lfcam.super_resolve(raw, cal, parallax=s, **kwargs)
 
 
 def test_bad_inputs_name_the_argument(reference_camera) -> None:
@@ -254,9 +257,9 @@ def test_bad_inputs_name_the_argument(reference_camera) -> None:
     raw = np.zeros((*cal.raw_shape, 3), np.uint8)
     s = np.zeros(tuple(cal.rect_shape), np.float32)
     with pytest.raises(lfcam.InputError, match=r"^raw:"):
-        lfcam.super_resolve(raw[:-1], cal, s)
-    with pytest.raises(lfcam.InputError, match=r"^depth:"):
-        lfcam.super_resolve(raw, cal, s[:-1])
+        lfcam.super_resolve(raw[:-1], cal, parallax=s)
+    with pytest.raises(lfcam.InputError, match=r"^parallax:"):
+        lfcam.super_resolve(raw, cal, parallax=s[:-1])
     with pytest.raises(lfcam.InputError, match=r"^depth_m:"):
         lfcam.refocus(raw, cal)
     with pytest.raises(lfcam.InputError, match=r"^depth_m:"):
@@ -489,7 +492,7 @@ def test_super_resolve_params_are_used(reference_camera) -> None:
     raw = lfcam.read_raw(reference_camera.sim.captures["board"])
     s = np.zeros(tuple(cal.rect_shape), np.float32)
     p = SuperResParams(deblur_iterations=0)
-    a = lfcam.super_resolve(raw, cal, s, 2, params=p)
+    a = lfcam.super_resolve(raw, cal, parallax=s, factor=2, params=p)
     pos = place_raw_samples(cal, s, iterations=p.place_iterations, tolerance=p.place_tolerance)
     sums, wsum = shift_and_add(
         pos,
@@ -508,7 +511,7 @@ def test_super_resolve_params_are_used(reference_camera) -> None:
     # The core fuses sum / wsum in one pass (float32 division either way).
     np.testing.assert_allclose(a, plain, rtol=0, atol=1e-6)
     # The default (deblurred) image is a different one.
-    b = lfcam.super_resolve(raw, cal, s, 2)
+    b = lfcam.super_resolve(raw, cal, parallax=s, factor=2)
     assert float(np.abs(a - b).mean()) > 1e-3
 
 
@@ -526,13 +529,23 @@ def test_process_writes_superres_and_refocus(reference_camera, tmp_path, capsys)
     assert code == 0, capsys.readouterr().err
     d = out / "board"
     sr = cv2.imread(str(d / "superres.png"), cv2.IMREAD_UNCHANGED)
-    H, W = (int(x) for x in cam.cal.rect_shape)
+    # The default frame: the reference view's valid box (result.json says where).
+    frame = json.loads((d / "result.json").read_text())["frame"]
+    H, W = frame["shape"]
     assert sr.dtype == np.uint16
     assert sr.shape == (2 * H, 2 * W, 3)
+    # superres.tiff: the same image as linear float32; the PNG is its sRGB encoding.
+    sr_lin = tifffile.imread(d / "superres.tiff")
+    assert sr_lin.dtype == np.float32
+    assert sr_lin.shape == sr.shape
+    np.testing.assert_array_equal(sr[..., ::-1], lfcam.io.encode_u16(sr_lin))
+    assert read_tiff_description(d / "superres.tiff")["frame"]["scale"] == 2
     for z in ("0.8", "1.5"):
         img = cv2.imread(str(d / f"refocus_{z}m.png"), cv2.IMREAD_UNCHANGED)
         assert img.dtype == np.uint16
         assert img.shape == (H, W, 3)
+        lin = tifffile.imread(d / f"refocus_{z}m.tiff")
+        np.testing.assert_array_equal(img[..., ::-1], lfcam.io.encode_u16(lin))
     assert main([*args, "--overwrite", "--superres", "5"]) == 2
     assert "--superres" in capsys.readouterr().err
     assert main([*args, "--overwrite", "--refocus", "0.1"]) == 2

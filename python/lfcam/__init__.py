@@ -11,6 +11,7 @@ map"): :mod:`lfcam.io` and :mod:`lfcam.kernels` <- :mod:`lfcam.calibration` <-
 :mod:`lfcam.pipeline` <- :mod:`lfcam.outputs` <- :mod:`lfcam.batch` <- :mod:`lfcam.cli`.
 """
 
+from lfcam._build import build_info
 from lfcam._lfcam import __version__, get_num_threads, set_num_threads
 from lfcam.batch import BatchSummary, ProcessOptions, process_folder
 from lfcam.calibration import Calibration, CalibrationParams, calibrate, make_pattern
@@ -27,6 +28,7 @@ from lfcam.pipeline import CaptureResult, process_capture
 from lfcam.processing import (
     DepthParams,
     DepthResult,
+    RefineParams,
     TriangulationParams,
     TriangulationResult,
     depth_from_views,
@@ -61,6 +63,7 @@ __all__ = [
     "Mesh",
     "NumericalError",
     "ProcessOptions",
+    "RefineParams",
     "RenderResult",
     "SimConfig",
     "SimulationResult",
@@ -69,6 +72,7 @@ __all__ = [
     "TriangulationResult",
     "__version__",
     "all_in_focus",
+    "build_info",
     "calibrate",
     "crop_lenslets",
     "depth_from_views",

@@ -15,6 +15,7 @@ __all__ = [
     "invert_maps",
     "nan_median",
     "place_samples",
+    "plane_sweep",
     "rasterize",
     "rectify",
     "remap_bilinear",
@@ -187,6 +188,21 @@ def btv_deblur(
     eps: float,
 ) -> NDArray[np.float32]:
     """Bilateral-TV deblurring of a (H, W, C) shift-and-add image with data weights a."""
+
+def plane_sweep(
+    views: NDArray[np.float32],
+    offsets: NDArray[np.float64],
+    reference: int,
+    candidates: NDArray[np.float32],
+    subsets: NDArray[np.uint8],
+    trunc_colour: float,
+    trunc_gradient: float,
+    alpha: float,
+    radius: int,
+    eps: float,
+) -> NDArray[np.float32]:
+    """Plane sweep along the parallax lines: (H, W, S, 4) parallax, cost, curvature and
+    second-best cost per pixel and view subset."""
 
 def set_num_threads(n: int) -> None:
     """Set the number of threads lfcam's kernels run on (1 to 1024)."""

@@ -7,6 +7,7 @@ documented copy of a non-C-contiguous image.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from typing import Any
 
@@ -15,7 +16,7 @@ from numpy.typing import DTypeLike, NDArray
 
 from lfcam.errors import InputError
 
-__all__ = ["as_image", "as_int_array", "check_positive_int"]
+__all__ = ["as_image", "as_int_array", "check_instance", "check_path", "check_positive_int"]
 
 
 def _dtype_list(dtypes: Sequence[np.dtype[Any]]) -> str:
@@ -127,3 +128,19 @@ def check_positive_int(value: Any, name: str, *, minimum: int = 1) -> int:
     if value < minimum:
         raise InputError(f"{name}: expected an integer >= {minimum}, got {value}")
     return int(value)
+
+
+def check_instance(value: Any, cls: type, name: str) -> None:
+    """Raise :class:`~lfcam.InputError` naming ``name`` unless ``value`` is a ``cls``.
+
+    For arguments such as ``cal`` whose attributes are used at once: without it a
+    ``None`` surfaces as an ``AttributeError`` deep inside.
+    """
+    if not isinstance(value, cls):
+        raise InputError(f"{name}: expected a {cls.__name__}, got {type(value).__name__}")
+
+
+def check_path(value: Any, name: str) -> None:
+    """Raise :class:`~lfcam.InputError` naming ``name`` unless ``value`` is a str or path."""
+    if not isinstance(value, (str, os.PathLike)):
+        raise InputError(f"{name}: expected a file path, got {value!r}")

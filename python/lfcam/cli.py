@@ -8,27 +8,50 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import math
 import os
 import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 from .errors import CalibrationError, InputError, LfcamError
+from .progress import Progress, configure_logging
 
 EXIT_OK = 0
 EXIT_INTERNAL = 1
 EXIT_INPUT = 2
 
 
-def _pair(text: str, sep: str, name: str) -> tuple[int, int]:
+class _Parser(argparse.ArgumentParser):
+    """argparse with a one-line usage error naming the argument (exit 2)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(EXIT_INPUT, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _check_output_folder(path: Path, flag: str) -> None:
+    """Refuse an output folder that cannot be made or written, before any long work."""
+    if path.exists() and not path.is_dir():
+        raise InputError(f"{flag} {path}: exists and is not a folder")
+    parent = path
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise InputError(f"{flag} {path}: {parent} is a file, not a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError(f"{flag} {path}: {parent} is not writable")
+
+
+def _pair(text: str, sep: str, name: str, form: str) -> tuple[int, int]:
+    """Two integers separated by ``sep`` (``form`` names them in the error: ``RxC``)."""
     parts = text.lower().split(sep)
     try:
         a, b = (int(p) for p in parts)
     except ValueError:
         raise argparse.ArgumentTypeError(
-            f"{name}: expected two integers as A{sep}B, got {text!r}"
+            f"{name}: expected two integers as {form}, got {text!r}"
         ) from None
     return a, b
 
@@ -42,18 +65,50 @@ def _floats(text: str) -> tuple[float, ...]:
         ) from None
 
 
-def _progress(total: int, desc: str) -> Any:
-    from tqdm import tqdm
+def _progress(args: argparse.Namespace, total: int, desc: str, unit: str = "step") -> Progress:
+    return Progress(total, desc, unit=unit, quiet=args.quiet)
 
-    return tqdm(total=total, desc=desc, unit="step", file=sys.stderr, disable=None, leave=False)
+
+#: Options every command takes (each subparser inherits them).
+_COMMON = argparse.ArgumentParser(add_help=False)
+_COMMON.add_argument(
+    "-q", "--quiet", action="store_true", help="no progress bar or progress log lines"
+)
+
+
+class _HelpFormatter(argparse.HelpFormatter):
+    """Wraps descriptions as usual; keeps the examples' lines as written."""
+
+    def _fill_text(self, text: str, width: int, indent: str) -> str:
+        if text.startswith("examples:"):
+            return "".join(indent + line for line in text.splitlines(keepends=True))
+        return super()._fill_text(text, width, indent)
+
+
+def _command(sub: Any, name: str, *, examples: Sequence[str], **kwargs: Any) -> Any:
+    """A subcommand's parser: common options, and its examples at the end of --help."""
+    epilog = "examples:\n" + "\n".join(f"  {e}" for e in examples)
+    return sub.add_parser(
+        name,
+        parents=[_COMMON],
+        epilog=epilog,
+        formatter_class=_HelpFormatter,
+        **kwargs,
+    )
 
 
 # ---------------------------------------------------------------------------
 # lfcam simulate
 # ---------------------------------------------------------------------------
 def _add_simulate(sub: Any) -> None:
-    p = sub.add_parser(
+    p = _command(
+        sub,
         "simulate",
+        examples=[
+            "lfcam simulate sim/",
+            "lfcam simulate sim/ --grid 3x3 --view-size 320x240 --bit-depth 16 --format tiff",
+            "lfcam simulate sim/ --bayer RGGB --scenes planes,board --distances 0.7,1,1.5",
+        ],
         help="simulate a camera: calibration captures and scenes with ground truth",
         description=(
             "Render a simulated light-field camera (docs/design.md, 'Simulator'): a calibration "
@@ -63,13 +118,21 @@ def _add_simulate(sub: Any) -> None:
             "which override it."
         ),
     )
-    p.add_argument("out_dir", type=Path, help="output folder (must be new or empty)")
-    p.add_argument("--config", type=Path, help="TOML file of camera parameters")
-    p.add_argument("--seed", type=int, help="random seed (default 0)")
-    p.add_argument("--grid", type=lambda t: _pair(t, "x", "--grid"), help="lenslet grid, e.g. 3x4")
+    p.add_argument(
+        "out_dir", type=Path, metavar="OUT_DIR", help="output folder (must be new or empty)"
+    )
+    p.add_argument("--config", type=Path, metavar="CAM.toml", help="TOML file of camera parameters")
+    p.add_argument("--seed", type=int, metavar="S", help="random seed (default 0)")
+    p.add_argument(
+        "--grid",
+        type=lambda t: _pair(t, "x", "--grid", "RxC"),
+        metavar="RxC",
+        help="lenslet grid, rows x columns, e.g. 3x4",
+    )
     p.add_argument(
         "--view-size",
-        type=lambda t: _pair(t, "x", "--view-size"),
+        type=lambda t: _pair(t, "x", "--view-size", "WxH"),
+        metavar="WxH",
         help="width x height of one view in raw pixels, e.g. 480x360",
     )
     p.add_argument(
@@ -83,11 +146,20 @@ def _add_simulate(sub: Any) -> None:
         choices=("png", "tiff", "dng"),
         help="raw file format (dng: camera raw, needs --bayer)",
     )
-    p.add_argument("--scenes", help="comma-separated scenes: planes, spheres, layered, board")
-    p.add_argument("--distances", type=_floats, help="board distances in metres, e.g. 0.8,1,1.25")
-    p.add_argument("--captures", type=int, help="board captures per distance (default 5)")
+    p.add_argument(
+        "--scenes", metavar="S1,S2", help="comma-separated scenes: planes, spheres, layered, board"
+    )
+    p.add_argument(
+        "--distances",
+        type=_floats,
+        metavar="Z1,Z2",
+        help="board distances in metres, e.g. 0.8,1,1.25",
+    )
+    p.add_argument(
+        "--captures", type=int, metavar="N", help="board captures per distance (default 5)"
+    )
     p.add_argument("--no-truth", action="store_true", help="skip the ground truth")
-    p.add_argument("--overwrite", action="store_true", help="replace a non-empty out_dir")
+    p.add_argument("--overwrite", action="store_true", help="replace a non-empty OUT_DIR")
     p.set_defaults(func=_cmd_simulate)
 
 
@@ -111,14 +183,9 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         cfg = SimConfig.from_dict({}, source="command line", **changes)
     steps = 4 + len(cfg.distances) + len(cfg.scenes) + (0 if args.no_truth else 1)
     t0 = time.perf_counter()
-    with _progress(steps, "simulate") as bar:
-
-        def step(msg: str) -> None:
-            bar.set_postfix_str(msg)
-            bar.update(1)
-
+    with _progress(args, steps, "simulate") as bar:
         res = simulate(
-            args.out_dir, cfg, overwrite=args.overwrite, truth=not args.no_truth, progress=step
+            args.out_dir, cfg, overwrite=args.overwrite, truth=not args.no_truth, progress=bar
         )
     cam = res.camera
     print(f"simulated a {cfg.grid[0]}x{cfg.grid[1]} camera in {time.perf_counter() - t0:.1f} s")
@@ -142,8 +209,13 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 # lfcam pattern
 # ---------------------------------------------------------------------------
 def _add_pattern(sub: Any) -> None:
-    p = sub.add_parser(
+    p = _command(
+        sub,
         "pattern",
+        examples=[
+            "lfcam pattern cal/pattern.png --width 1920 --height 1080",
+            "lfcam pattern board.tiff --width 4000 --height 3000 --seed 7",
+        ],
         help="write the digital calibration pattern",
         description=(
             "Write the calibration pattern: dense multi-scale texture with a cross at the "
@@ -152,10 +224,10 @@ def _add_pattern(sub: Any) -> None:
             "size of one pattern pixel on the board in metres is the pattern pitch."
         ),
     )
-    p.add_argument("out", type=Path, help="output image (.png, .tif or .tiff)")
-    p.add_argument("--width", type=int, required=True, help="width in pixels")
-    p.add_argument("--height", type=int, required=True, help="height in pixels")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("out", type=Path, metavar="OUT.png", help="output image (.png, .tif or .tiff)")
+    p.add_argument("--width", type=int, required=True, metavar="W", help="width in pixels")
+    p.add_argument("--height", type=int, required=True, metavar="H", help="height in pixels")
+    p.add_argument("--seed", type=int, default=0, metavar="S", help="random seed (default 0)")
     p.set_defaults(func=_cmd_pattern)
 
 
@@ -173,12 +245,19 @@ def _cmd_pattern(args: argparse.Namespace) -> int:
 # lfcam calibrate / lfcam info
 # ---------------------------------------------------------------------------
 def _rc(text: str) -> tuple[int, int]:
-    return _pair(text, ",", "--reference")
+    return _pair(text, ",", "--reference", "ROW,COL")
 
 
 def _add_calibrate(sub: Any) -> None:
-    p = sub.add_parser(
+    p = _command(
+        sub,
         "calibrate",
+        examples=[
+            "lfcam calibrate cal/ -o camera.lfcal",
+            "lfcam calibrate cal/ -o camera.lfcal --grid 3x4 --reference 1,1 --pattern-pitch 2.5e-4"
+            " --overwrite",
+            "lfcam calibrate cal/ -o camera.lfcal --z-c 0.052 --bayer RGGB",
+        ],
         help="calibrate a camera from white and board captures",
         description=(
             "Calibrate a camera (docs/design.md, 'Calibration pipeline') from CAL_DIR: "
@@ -189,14 +268,35 @@ def _add_calibrate(sub: Any) -> None:
             "override. Writes CAMERA.lfcal, CAMERA.report.json and CAMERA.report.png."
         ),
     )
-    p.add_argument("cal_dir", type=Path, help="the calibration folder")
-    p.add_argument("-o", "--output", type=Path, required=True, help="CAMERA.lfcal to write")
-    p.add_argument("--grid", type=lambda t: _pair(t, "x", "--grid"), help="lenslet grid, e.g. 3x4")
-    p.add_argument("--reference", type=_rc, help="reference view ROW,COL (zero-based)")
-    p.add_argument("--reference-distance", type=float, help="Z_b, metres (default: nearest 1 m)")
-    p.add_argument("--scale", type=float, help="rectified px per pattern px (default: ~1 raw px)")
-    p.add_argument("--z-c", type=float, help="Z_c = f D / (D - f) in metres, if known")
-    p.add_argument("--pattern-pitch", type=float, help="metres per pattern pixel on the board")
+    p.add_argument("cal_dir", type=Path, metavar="CAL_DIR", help="the calibration folder")
+    p.add_argument(
+        "-o",
+        "--output",
+        type=Path,
+        required=True,
+        metavar="CAMERA.lfcal",
+        help="calibration file to write",
+    )
+    p.add_argument(
+        "--grid",
+        type=lambda t: _pair(t, "x", "--grid", "RxC"),
+        metavar="RxC",
+        help="lenslet grid, rows x columns, e.g. 3x4",
+    )
+    p.add_argument("--reference", type=_rc, metavar="ROW,COL", help="reference view (zero-based)")
+    p.add_argument(
+        "--reference-distance",
+        type=float,
+        metavar="M",
+        help="Z_b, metres (default: the board distance nearest 1 m)",
+    )
+    p.add_argument(
+        "--scale", type=float, metavar="S", help="rectified px per pattern px (default: ~1 raw px)"
+    )
+    p.add_argument("--z-c", type=float, metavar="M", help="Z_c = f D / (D - f) in metres, if known")
+    p.add_argument(
+        "--pattern-pitch", type=float, metavar="M", help="metres per pattern pixel on the board"
+    )
     p.add_argument("--bayer", choices=("RGGB", "BGGR", "GRBG", "GBRG"), help="Bayer raw")
     p.add_argument("--overwrite", action="store_true", help="replace an existing CAMERA.lfcal")
     p.set_defaults(func=_cmd_calibrate)
@@ -212,14 +312,11 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
         raise InputError(f"{out}: exists (use --overwrite to replace it)")
     if not out.parent.is_dir():
         raise InputError(f"{out}: folder {out.parent} does not exist")
+    if not os.access(out.parent, os.W_OK | os.X_OK):
+        raise InputError(f"{out}: folder {out.parent} is not writable")
     steps = ["layout", "scale", "warp", "depth"]
     t0 = time.perf_counter()
-    with _progress(len(steps) + 3, "calibrate") as bar:
-
-        def step(msg: str) -> None:
-            bar.set_postfix_str(msg)
-            bar.update(1)
-
+    with _progress(args, len(steps) + 3, "calibrate") as bar:
         run = run_calibration(
             args.cal_dir,
             grid=args.grid,
@@ -229,7 +326,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
             z_c=args.z_c,
             pattern_pitch=args.pattern_pitch,
             bayer=args.bayer,
-            progress=step,
+            progress=bar,
         )
         paths = run.save(out)
     cal = run.calibration
@@ -255,8 +352,21 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def _add_info(sub: Any) -> None:
-    p = sub.add_parser("info", help="show what is in a calibration file")
-    p.add_argument("calibration", type=Path, help="CAMERA.lfcal")
+    p = _command(
+        sub,
+        "info",
+        examples=["lfcam info camera.lfcal", "lfcam info camera.lfcal | less"],
+        help="show what is in a calibration file",
+        description=(
+            "Print what a calibration file holds: its path, format version, creation "
+            "time and SHA-256 (the one result.json files cite), the lenslet grid and "
+            "reference view, the raw, rectified and pattern sizes, Z_b and Z_c (metric "
+            "or relative depth), the board distances, the pattern pitch, the Bayer "
+            "mosaic, a table of the views and the calibration report's summary. The "
+            "file's datasets are described in docs/design.md, 'Calibration file'."
+        ),
+    )
+    p.add_argument("calibration", type=Path, metavar="CAMERA.lfcal", help="the calibration file")
     p.set_defaults(func=_cmd_info)
 
 
@@ -271,27 +381,56 @@ def _cmd_info(args: argparse.Namespace) -> int:
 # lfcam process
 # ---------------------------------------------------------------------------
 EXIT_PARTIAL = 3
+#: Most processes ``--jobs`` may start, and most ``--orbit`` frames (two minutes of
+#: video at 30 frames per second): beyond them a run would not end in reasonable time.
+MAX_JOBS = 256
+MAX_ORBIT_FRAMES = 3600
 
 
 def _add_process(sub: Any) -> None:
-    p = sub.add_parser(
+    p = _command(
+        sub,
         "process",
+        examples=[
+            "lfcam process capture.png -c camera.lfcal -o out/",
+            "lfcam process captures/ -c camera.lfcal -o out/ --jobs 2",
+            "lfcam process capture.png -c camera.lfcal -o out/ --superres 2 --refocus 0.8,1.5",
+            "lfcam process capture.png -c camera.lfcal -o out/ --mesh --novel-view 0.01,0,0",
+            "lfcam process captures/ -c camera.lfcal -o out/ --frame full --overwrite",
+            "lfcam process captures/ -c camera.lfcal -o out/ --cluster slurm:4",
+        ],
         help="depth (and more) for raw captures",
         description=(
             "Process raw captures with a calibration: rectify, optical flow, triangulate. "
             "INPUT is a file or a folder (searched recursively, sorted). For each capture, "
             "OUT_DIR/<relative path without suffix>/ gets depth.tiff (float32 metres, NaN "
-            "unknown, the reference view's rectified frame), depth.png (preview with a "
-            "colour bar), confidence.tiff, points.ply and result.json. Complete outputs "
-            "are skipped unless --overwrite. A capture that fails is reported and skipped; "
+            "unknown), depth.png (preview with a colour bar), confidence.tiff, points.ply "
+            "and result.json. Images are in the reference view's rectified frame, cropped "
+            "to the part the reference view sees (--frame full: uncropped); result.json "
+            "gives the crop offset, and each TIFF says what it holds in its description "
+            "(docs/design.md, 'Capture outputs'). Complete outputs are skipped unless "
+            "--overwrite. A capture that fails is reported and skipped; "
             f"the exit code is then {EXIT_PARTIAL}."
         ),
     )
-    p.add_argument("input", type=Path, help="a raw capture or a folder of them")
-    p.add_argument("-c", "--calibration", type=Path, required=True, help="CAMERA.lfcal")
-    p.add_argument("-o", "--output", type=Path, required=True, help="output folder")
+    p.add_argument("input", type=Path, metavar="INPUT", help="a raw capture or a folder of them")
     p.add_argument(
-        "--jobs", type=int, default=1, help="captures processed in parallel on this machine"
+        "-c",
+        "--calibration",
+        type=Path,
+        required=True,
+        metavar="CAMERA.lfcal",
+        help="the calibration file",
+    )
+    p.add_argument(
+        "-o", "--output", type=Path, required=True, metavar="OUT_DIR", help="output folder"
+    )
+    p.add_argument(
+        "--jobs",
+        type=int,
+        default=1,
+        metavar="N",
+        help="captures processed in parallel on this machine",
     )
     p.add_argument(
         "--cluster",
@@ -319,13 +458,22 @@ def _add_process(sub: Any) -> None:
         "--superres",
         type=int,
         metavar="F",
-        help="also write superres.png: the reference view super-resolved F times (1-4)",
+        help="also write superres.tiff (float32, linear) and superres.png: the reference "
+        "view super-resolved F times (1-4)",
     )
     p.add_argument(
         "--refocus",
         type=_floats,
         metavar="Z1,Z2",
-        help="also write refocus_<Z>m.png, refocused at these distances in metres",
+        help="also write refocus_<Z>m.tiff and .png, refocused at these distances in metres",
+    )
+    p.add_argument(
+        "--frame",
+        choices=("valid", "full"),
+        default="valid",
+        help="valid (default): crop the products to the reference view's valid bounding "
+        "box; full: the calibration's whole rectified frame. result.json records the "
+        "crop offset",
     )
     p.add_argument("--overwrite", action="store_true", help="redo complete outputs")
     p.add_argument("--mesh", action="store_true", help="also write mesh.ply (coloured triangles)")
@@ -341,6 +489,18 @@ def _add_process(sub: Any) -> None:
     p.set_defaults(func=_cmd_process)
 
 
+def _degenerate_warning(result_json: Path) -> str | None:
+    """The warning for a capture whose ``result.json`` says it is degenerate."""
+    import json
+
+    from .outputs import degenerate_message
+
+    try:
+        return degenerate_message(json.loads(result_json.read_text()))
+    except (OSError, ValueError):
+        return None
+
+
 def _novel_options(args: argparse.Namespace, cal: Any) -> Any:
     """--mesh / --novel-view / --orbit as :class:`lfcam.outputs.NovelViewOptions`."""
     import math
@@ -348,8 +508,8 @@ def _novel_options(args: argparse.Namespace, cal: Any) -> Any:
     from .outputs import NovelViewOptions
     from .products.geometry import parse_pose
 
-    if args.orbit < 0:
-        raise InputError(f"--orbit: must be >= 0, got {args.orbit}")
+    if not 0 <= args.orbit <= MAX_ORBIT_FRAMES:
+        raise InputError(f"--orbit: expected 0 to {MAX_ORBIT_FRAMES} frames, got {args.orbit}")
     pose = None
     if args.novel_view is not None:
         try:
@@ -368,10 +528,13 @@ def _cmd_process(args: argparse.Namespace) -> int:
     from .batch import ProcessOptions, process_folder
     from .calibration import Calibration
 
-    if args.jobs < 1:
-        raise InputError(f"--jobs: must be >= 1, got {args.jobs}")
+    if not 1 <= args.jobs <= MAX_JOBS:
+        raise InputError(f"--jobs: expected 1 to {MAX_JOBS}, got {args.jobs}")
     if args.superres is not None and not (1 <= args.superres <= 4):
         raise InputError(f"--superres: expected a factor from 1 to 4, got {args.superres}")
+    _check_output_folder(args.output, "-o")
+    if args.refocus and not all(math.isfinite(z) and z > 0 for z in args.refocus):
+        raise InputError(f"--refocus: expected finite distances > 0 m, got {list(args.refocus)}")
     cal = Calibration.load(args.calibration)
     if args.refocus and cal.metric:
         bad = [z for z in args.refocus if not z > cal.z_c]
@@ -385,12 +548,12 @@ def _cmd_process(args: argparse.Namespace) -> int:
         refocus=tuple(args.refocus or ()),
         novel=_novel_options(args, cal),
         overwrite=args.overwrite,
+        frame=args.frame,
     )
     if args.cluster is not None and args.jobs != 1:
         raise InputError("--jobs: not with --cluster (the cluster's workers run the captures)")
     if not args.cluster_timeout > 0:
         raise InputError(f"--cluster-timeout: must be > 0, got {args.cluster_timeout}")
-    from tqdm import tqdm
 
     with contextlib.ExitStack() as stack:
         client = None
@@ -403,19 +566,17 @@ def _cmd_process(args: argparse.Namespace) -> int:
                 )
             )
             print(f"dask cluster {args.cluster}: dashboard {client.dashboard_link}", flush=True)
-        bar = stack.enter_context(
-            tqdm(desc="process", unit="capture", file=sys.stderr, disable=None)
-        )
+        bars: list[Progress] = []
+        stack.callback(lambda: [bar.close() for bar in bars])
 
         def progress(outcome: Any, finished: int, total: int) -> None:
             # Done / total, rate and ETA over the captures that need work.
-            if bar.total is None:
-                bar.total = total
+            if not bars:  # the total is known once the folder is scanned
+                bars.append(_progress(args, total, "process", unit="capture"))
             if outcome.status == "skipped":
-                bar.total -= 1
-                bar.refresh()
+                bars[0].skip()
             else:
-                bar.update(1)
+                bars[0].step(f"{outcome.source} {outcome.status}")
 
         summary = process_folder(
             args.input,
@@ -433,6 +594,10 @@ def _cmd_process(args: argparse.Namespace) -> int:
         + (f", {len(failures)} FAILED" if failures else "")
         + f" -> {args.output}"
     )
+    for o in summary.outcomes:
+        warn = o.status == "done" and _degenerate_warning(Path(o.out) / "result.json")
+        if warn:
+            print(f"lfcam process: warning: {o.source}: {warn}", file=sys.stderr)
     for src, err in failures:
         print(f"  failed: {src}: {err}", file=sys.stderr)
     return EXIT_PARTIAL if failures else EXIT_OK
@@ -442,14 +607,22 @@ def _cmd_process(args: argparse.Namespace) -> int:
 # lfcam depth-views
 # ---------------------------------------------------------------------------
 def _add_depth_views(sub: Any) -> None:
-    p = sub.add_parser(
+    p = _command(
+        sub,
         "depth-views",
+        examples=[
+            "lfcam depth-views hci4d_antinous/ -o antinous/",
+            "lfcam depth-views hci4d_antinous/ -o antinous_3x4/ --views 3:6,3:7 --reference 4,4",
+            "lfcam depth-views lytro_2067/ -o lytro/ --views 3:8,3:8",
+            "lfcam depth-views rig/ -o rig_depth/ --flip x --overwrite",
+        ],
         help="depth of a folder of rectified views (HCI 4D light field, row_col images)",
         description=(
             "Depth from a light field made elsewhere: a folder of already-rectified views "
             "on a regular grid, either the HCI 4D benchmark's layout (input_CamNNN.png, "
             "parameters.cfg, optional gt_disp_lowres.pfm) or images named by row and "
-            "column (03_04.png, view_3_4.png). Runs the depth chain of 'lfcam process' "
+            "column (03_04.png, view_3_4.png; a shared numeric prefix is allowed, as in "
+            "Lytro exports: 2067_05_05.png). Runs the depth chain of 'lfcam process' "
             "(optical flow from the reference view, triangulation) and writes OUT_DIR/ "
             "with disparity.tiff and disparity.pfm (px per grid step, HCI sign: positive "
             "nearer than the zero-parallax plane), disparity.png, confidence.tiff and "
@@ -486,7 +659,7 @@ def _add_depth_views(sub: Any) -> None:
 
 
 def _cmd_depth_views(args: argparse.Namespace) -> int:
-    from .outputs import write_lightfield
+    from .outputs import degenerate_message, write_lightfield
     from .sim import HCI_BORDER, LightField
 
     out: Path = args.output
@@ -495,19 +668,26 @@ def _cmd_depth_views(args: argparse.Namespace) -> int:
     if out.is_dir() and any(out.iterdir()) and not args.overwrite:
         raise InputError(f"{out}: exists (use --overwrite to replace it)")
     t0 = time.perf_counter()
-    lf = LightField.from_folder(args.folder, args.views, args.reference, flip=args.flip)
-    t1 = time.perf_counter()
-    res = lf.estimate_depth(threads=max(1, os.cpu_count() or 1))
-    t2 = time.perf_counter()
-    _, info = write_lightfield(
-        out,
-        lf,
-        res,
-        timings={"read": t1 - t0, "depth": t2 - t1},
-        extra={"command": "depth-views"},
-    )
-    t3 = time.perf_counter()
+    with _progress(args, 3, "depth-views") as bar:
+        lf = LightField.from_folder(args.folder, args.views, args.reference, flip=args.flip)
+        t1 = time.perf_counter()
+        bar.step(f"read {lf.n_views} views")
+        res = lf.estimate_depth(threads=max(1, os.cpu_count() or 1))
+        t2 = time.perf_counter()
+        bar.step("depth")
+        _, info = write_lightfield(
+            out,
+            lf,
+            res,
+            timings={"read": t1 - t0, "depth": t2 - t1},
+            extra={"command": "depth-views"},
+        )
+        t3 = time.perf_counter()
+        bar.step(f"wrote {out}")
     stats = info["statistics"]
+    warn = degenerate_message(info)
+    if warn:
+        print(f"lfcam depth-views: warning: {args.folder}: {warn}", file=sys.stderr)
     h, w = lf.image_shape
     print(
         f"depth of a {lf.grid_shape[0]}x{lf.grid_shape[1]} light field ({w} x {h} px,"
@@ -547,8 +727,13 @@ def _cmd_depth_views(args: argparse.Namespace) -> int:
 # lfcam demo
 # ---------------------------------------------------------------------------
 def _add_demo(sub: Any) -> None:
-    p = sub.add_parser(
+    p = _command(
+        sub,
         "demo",
+        examples=[
+            "lfcam demo",
+            "lfcam demo /tmp/lfcam-demo --seed 3 --overwrite",
+        ],
         help="simulate, calibrate and process a camera; print accuracy against the truth",
         description=(
             "The whole job on the built-in simulated camera: simulate a 3x4 camera with "
@@ -560,44 +745,66 @@ def _add_demo(sub: Any) -> None:
         "out_dir",
         type=Path,
         nargs="?",
-        default=Path("lfcam-demo"),
-        help="output folder (default ./lfcam-demo)",
+        default=None,
+        metavar="OUT_DIR",
+        help="output folder (default: lfcam-demo in the system's temporary folder)",
     )
-    p.add_argument("--seed", type=int, default=0, help="random seed of the simulated camera")
-    p.add_argument("--overwrite", action="store_true", help="replace a non-empty out_dir")
+    p.add_argument(
+        "--seed", type=int, default=0, metavar="S", help="random seed of the simulated camera"
+    )
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help="320x240 px views and one scene: checks an installation in a fraction of the time",
+    )
+    p.add_argument("--overwrite", action="store_true", help="replace a non-empty OUT_DIR")
     p.set_defaults(func=_cmd_demo)
+
+
+def _default_demo_dir() -> Path:
+    """The demo's default output: outside any source tree, in the temporary folder."""
+    import tempfile
+
+    return Path(tempfile.gettempdir()) / "lfcam-demo"
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     import numpy as np
 
     from .calibration import run_calibration
-    from .io import read_image
+    from .io import file_hash, read_image
     from .outputs import write_capture
     from .pipeline import process_capture
     from .sim import SimConfig, depth_accuracy, simulate
 
-    out: Path = args.out_dir
+    out: Path = args.out_dir if args.out_dir is not None else _default_demo_dir()
     if out.exists() and any(out.iterdir()) and not args.overwrite:
         raise InputError(f"{out}: folder is not empty (use --overwrite)")
     out.mkdir(parents=True, exist_ok=True)
     t_all = time.perf_counter()
-    cfg = SimConfig(captures_per_distance=3, seed=args.seed)
-    n_steps = 3 + len(cfg.scenes)
-    with _progress(n_steps, "demo") as bar:
-        bar.set_postfix_str("simulating the camera")
+    if args.quick:
+        # Smaller views, one scene: a check that an installation works end to end.
+        cfg = SimConfig(
+            view_size=(320, 240), scenes=("planes",), captures_per_distance=3, seed=args.seed
+        )
+    else:
+        cfg = SimConfig(captures_per_distance=3, seed=args.seed)
+    n_steps = 2 + len(cfg.scenes)
+    with _progress(args, n_steps, "demo") as bar:
         sim = simulate(out / "sim", cfg, overwrite=True)
-        bar.update(1)
-        bar.set_postfix_str("calibrating")
+        bar.step("simulated the camera")
         run = run_calibration(sim.calibration_dir)
         paths = run.save(out / "camera.lfcal")
-        bar.update(1)
+        bar.step("calibrated")
         cal = run.calibration
+        cal_info = {
+            "calibration": str(paths["calibration"]),
+            "calibration_sha256": file_hash(paths["calibration"]),
+        }
         rows = []
         for name, raw in sim.captures.items():
-            bar.set_postfix_str(f"depth of {name}")
             res = process_capture(raw, cal)
-            folder = write_capture(out / "results" / name, res, cal)
+            folder = write_capture(out / "results" / name, res, cal, extra=cal_info)
             truth = read_image(sim.truth_dir / name / "depth.tiff")
             z = res.depth.depth
             assert z is not None
@@ -612,7 +819,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
                     folder,
                 )
             )
-            bar.update(1)
+            bar.step(f"depth of {name}")
     truth_cam = np.load(sim.truth_dir / "camera.npz")
     print(f"lfcam demo: simulated, calibrated and processed in {time.perf_counter() - t_all:.0f} s")
     o_err = np.abs(cal.offsets - truth_cam["offsets"]).max()
@@ -633,15 +840,32 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 # ---------------------------------------------------------------------------
+class _VersionAction(argparse.Action):
+    """``--version``: the version and the code paths this machine runs
+    (:func:`lfcam.build_info`), read only when asked."""
+
+    def __init__(self, option_strings: Sequence[str], dest: str, **kwargs: Any) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kwargs)
+
+    def __call__(self, parser: argparse.ArgumentParser, *_: Any, **__: Any) -> None:
+        from ._build import describe_build
+
+        sys.stdout.write(describe_build() + "\n")
+        parser.exit()
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``lfcam`` argument parser (all subcommands)."""
-    from . import __version__
-
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="lfcam",
         description="Multiview light-field camera: simulate, calibrate, process.",
+        epilog="Each command's --help has examples. docs/design.md describes the method.",
     )
-    parser.add_argument("--version", action="version", version=f"lfcam {__version__}")
+    parser.add_argument(
+        "--version",
+        action=_VersionAction,
+        help="show the version, the SIMD code paths in use on this machine, and exit",
+    )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     _add_simulate(sub)
     _add_pattern(sub)
@@ -653,16 +877,54 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: Exit code after the reader of the output went away (128 + SIGPIPE, as the shell
+#: reports for a program ended by a closed pipe).
+EXIT_PIPE = 141
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run the ``lfcam`` command line; returns the exit code."""
+    """Run the ``lfcam`` command line; returns the exit code.
+
+    A closed standard output (``lfcam info X | head``) ends the command quietly with
+    exit code 141, as for programs that the shell sees killed by SIGPIPE.
+    """
+    try:
+        try:
+            return _main(argv)
+        except SystemExit:  # --help, --version, usage errors: their text is still buffered
+            sys.stdout.flush()
+            raise
+    except BrokenPipeError:
+        # Later writes (and the interpreter's final flush) go nowhere instead of
+        # raising again.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        try:
+            os.dup2(devnull, sys.stdout.fileno())
+        except (OSError, ValueError):
+            pass  # stdout is not a file (a test's capture): nothing to silence
+        finally:
+            os.close(devnull)
+        return EXIT_PIPE
+
+
+def _main(argv: Sequence[str] | None) -> int:
+    for stream in (sys.stdout, sys.stderr):
+        # A file name with bytes that are not UTF-8 is printed escaped, never a crash.
+        reconfigure = getattr(stream, "reconfigure", None)
+        if reconfigure is not None:
+            reconfigure(errors="backslashreplace")
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()
         return EXIT_INPUT
+    configure_logging(quiet=args.quiet)
     try:
         code: int = args.func(args)
+        sys.stdout.flush()  # a closed pipe shows here, not in the interpreter's exit
         return code
+    except BrokenPipeError:
+        raise
     except InputError as exc:
         print(f"lfcam {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_INPUT

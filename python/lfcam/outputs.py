@@ -39,7 +39,33 @@ from .products.render import render_mesh
 from .sim import BADPIX_THRESHOLD, HCI_BORDER, LightField, disparity_metrics
 from .sim.lightfield import points_from_lightfield
 
-__all__ = ["NovelViewOptions", "write_capture", "write_lightfield", "write_novel_views"]
+__all__ = [
+    "FRAMES",
+    "MIN_COVERAGE",
+    "NovelViewOptions",
+    "degenerate_message",
+    "output_frame",
+    "reference_box",
+    "write_capture",
+    "write_lightfield",
+    "write_novel_views",
+]
+
+#: A result whose depth covers less than this fraction of the pixels the reference view
+#: sees is degenerate (an all-NaN, black or featureless capture, views too small):
+#: ``result.json`` says ``"degenerate": true`` and the command line warns.
+MIN_COVERAGE = 0.05
+
+
+def degenerate_message(info: dict[str, Any]) -> str | None:
+    """The console warning for a ``result.json`` marked degenerate, else None."""
+    if not info.get("degenerate"):
+        return None
+    cov = info["statistics"]["coverage"]
+    return (
+        f"depth covers {100 * cov:.1f} % of the reference view, below "
+        f"{100 * MIN_COVERAGE:g} %: a degenerate capture (blank, all NaN or too small?)"
+    )
 
 
 @dataclass
@@ -72,7 +98,7 @@ def write_novel_views(
     """Write the mesh and novel views of one processed capture into ``folder``.
 
     Called by :func:`write_capture` inside its atomic folder. PNGs are
-    gamma-encoded like the other previews; holes (nothing seen) are black.
+    sRGB-encoded like the other previews; holes (nothing seen) are black.
 
     Returns
     -------
@@ -94,8 +120,18 @@ def write_novel_views(
         write_mesh_ply(out / "mesh.ply", mesh)
     if options.pose is not None:
         r = render_mesh(mesh, cal, options.pose)
-        write_image(out / "novel_view.png", encode_u8(r.image))
-        write_image(out / "novel_view_depth.tiff", r.depth)
+        write_image(out / "novel_view.png", encode_u8(r.image), srgb=True)
+        write_image(
+            out / "novel_view_depth.tiff",
+            r.depth,
+            description={
+                "quantity": "depth Z along the novel camera's axis",
+                "unit": "m",
+                "nan": "NaN: nothing seen",
+                "frame": "the novel camera (pose in result.json), the rectified frame's size",
+                "software": f"lfcam {_version()}",
+            },
+        )
         info["novel_view_pose"] = options.pose.tolist()
         info["novel_view_coverage"] = float(r.mask.mean())
     if options.orbit > 0:
@@ -107,13 +143,79 @@ def write_novel_views(
                 rgb = encode_u8(render_mesh(mesh, cal, pose).image)
                 if rgb.ndim == 2:
                     rgb = np.repeat(rgb[..., None], 3, 2)
-                write_image(out / "orbit" / f"frame_{k:03d}.png", rgb)
+                write_image(out / "orbit" / f"frame_{k:03d}.png", rgb, srgb=True)
                 video.write(np.ascontiguousarray(rgb[..., ::-1]))
         finally:
             video.release()
         info["orbit_frames"] = options.orbit
     info["novel_views_s"] = time.perf_counter() - t0
     return info
+
+
+#: ``lfcam process --frame`` choices: crop to the reference view's data, or not.
+FRAMES = ("valid", "full")
+
+
+def reference_box(cal: Calibration) -> tuple[int, int, int, int]:
+    """``(x0, y0, w, h)``: the bounding box of the reference view's valid pixels
+    (``cal.masks[cal.reference]``) in the rectified frame; the whole frame if none."""
+    mask = np.asarray(cal.masks[cal.reference], bool)
+    rows = np.flatnonzero(mask.any(1))
+    cols = np.flatnonzero(mask.any(0))
+    if rows.size == 0:
+        H, W = (int(v) for v in cal.rect_shape)
+        return 0, 0, W, H
+    y0, y1, x0, x1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+    return x0, y0, x1 - x0, y1 - y0
+
+
+def output_frame(cal: Calibration, frame: str = "valid") -> dict[str, Any]:
+    """The pixel frame of a capture's image outputs, as ``result.json`` records it.
+
+    Parameters
+    ----------
+    cal : Calibration
+        The camera.
+    frame : {'valid', 'full'}
+        ``valid``: the bounding box of the reference view's valid pixels
+        (:func:`reference_box`); ``full``: the calibration's whole rectified frame.
+
+    Returns
+    -------
+    dict
+        ``name``, ``offset_xy`` (pixel ``(x, y)`` of an output is ``(x + x0, y + y0)``
+        in the calibration's rectified frame; ``(F (x + x0) + ..., ...)`` scaled for a
+        super-resolved image, see ``superres``), ``shape`` ``[H, W]`` and
+        ``rectified_shape``.
+    """
+    if frame not in FRAMES:
+        raise InputError(f"frame: expected one of {', '.join(FRAMES)}, got {frame!r}")
+    H, W = (int(v) for v in cal.rect_shape)
+    x0, y0, w, h = reference_box(cal) if frame == "valid" else (0, 0, W, H)
+    return {
+        "name": frame,
+        "offset_xy": [x0, y0],
+        "shape": [h, w],
+        "rectified_shape": [H, W],
+        "description": (
+            "the reference view's rectified frame"
+            + (
+                ", cropped to the bounding box of the pixels the reference view sees:"
+                f" output pixel (x, y) is rectified pixel (x + {x0}, y + {y0})"
+                if frame == "valid"
+                else ", whole"
+            )
+        ),
+    }
+
+
+def _crop(img: np.ndarray, frame: dict[str, Any], factor: int = 1) -> np.ndarray:
+    """``img`` (the rectified frame, or ``factor`` times it) cut to ``frame``."""
+    x0, y0 = frame["offset_xy"]
+    h, w = frame["shape"]
+    return np.ascontiguousarray(
+        img[factor * y0 : factor * (y0 + h), factor * x0 : factor * (x0 + w)]
+    )
 
 
 def write_capture(
@@ -124,37 +226,95 @@ def write_capture(
     extra: dict[str, Any] | None = None,
     save_views: bool = False,
     novel: NovelViewOptions | None = None,
+    frame: str = "valid",
 ) -> Path:
     """Write one capture's folder atomically; returns its path.
 
     Files: ``depth.tiff`` (float32 m, NaN unknown), ``depth.png`` (preview with
     a colour bar), ``confidence.tiff``, ``points.ply`` (coloured), ``result.json``
-    and, with ``save_views``, ``views/view_RR_CC.png``; ``superres.png`` and
-    ``refocus_<Z>m.png`` (16-bit RGB, display gamma 1/2.2) when the result has them;
-    with ``novel``, the mesh and novel views it asks for
-    (:func:`write_novel_views`).
+    and, with ``save_views``, ``views/view_R_C.png``; ``superres.tiff`` (float32,
+    linear, the rectified views' scale) and ``superres.png``, ``refocus_<Z>m.tiff``
+    and ``.png`` when the result has them; with ``novel``, the mesh and novel views
+    it asks for (:func:`write_novel_views`, in the whole rectified frame).
+
+    Images are cut to ``frame`` (:func:`output_frame`; ``result.json`` records the
+    crop offset); points keep their positions. PNGs are sRGB-encoded and say so; each
+    TIFF's ImageDescription is JSON: quantity, unit, frame and the calibration's
+    SHA-256 (``extra["calibration_sha256"]``, when given).
     """
     out = Path(out_dir)
+    fr = output_frame(cal, frame)
+    sha = (extra or {}).get("calibration_sha256")
+    meta_frame = {k: fr[k] for k in ("name", "offset_xy", "rectified_shape")}
+
+    def meta(quantity: str, unit: str | None, **more: Any) -> dict[str, Any]:
+        return {
+            "quantity": quantity,
+            "unit": unit,
+            "frame": {**meta_frame, **more.pop("frame", {})},
+            "calibration_sha256": sha,
+            "software": f"lfcam {_version()}",
+            **more,
+        }
+
     with atomic_folder(out) as tmp:
         d = result.depth
         ref_view = result.views[cal.reference]
         depth = d.depth if d.depth is not None else d.relative
         assert depth is not None
-        write_image(tmp / "depth.tiff", depth.astype(np.float32))
-        write_image(tmp / "depth.png", colour_depth(depth))
-        write_image(tmp / "confidence.tiff", d.confidence.astype(np.float32))
+        z_unit = "m" if d.depth is not None else "relative (t = s Z_c / Z_b)"
+        nan = "NaN: unknown"
+        write_image(
+            tmp / "depth.tiff",
+            _crop(depth.astype(np.float32), fr),
+            description=meta("depth Z along the lens axis", z_unit, nan=nan),
+        )
+        write_image(tmp / "depth.png", colour_depth(_crop(depth, fr)), srgb=True)
+        write_image(
+            tmp / "confidence.tiff",
+            _crop(d.confidence.astype(np.float32), fr),
+            description=meta("depth confidence, 0 (none) to 1", None, nan=nan),
+        )
         pts, idx, units = points_from_depth(depth, cal)
-        write_ply(tmp / "points.ply", pts, rgb_u8(ref_view[idx[:, 0], idx[:, 1]]))
+        write_ply(
+            tmp / "points.ply",
+            pts,
+            rgb_u8(ref_view[idx[:, 0], idx[:, 1]]),
+            comments=[
+                f"units X, Y {units}; Z {z_unit}",
+                "frame front lens: X right, Y down, Z forward (docs/design.md, 'Frames')",
+                "colour sRGB-encoded reference view",
+            ],
+        )
+        linear = "linear, the rectified views' scale (white = 1)"
         if result.superres is not None:
-            write_image(tmp / "superres.png", encode_u16(result.superres))
+            r = result.superres.shape[0] // int(cal.rect_shape[0])
+            sr = _crop(result.superres, fr, r).astype(np.float32)
+            sr_frame = {
+                "scale": r,
+                "note": f"fine pixel (X, Y) is rectified pixel ((X + 0.5) / {r} - 0.5"
+                f" + x0, (Y + 0.5) / {r} - 0.5 + y0), (x0, y0) = offset_xy",
+            }
+            write_image(
+                tmp / "superres.tiff",
+                sr,
+                description=meta("super-resolved reference view", linear, frame=sr_frame),
+            )
+            write_image(tmp / "superres.png", encode_u16(sr), srgb=True)
         for z, img in result.refocused.items():
-            write_image(tmp / f"refocus_{z:g}m.png", encode_u16(img))
+            rf = _crop(img, fr).astype(np.float32)
+            write_image(
+                tmp / f"refocus_{z:g}m.tiff",
+                rf,
+                description=meta(f"refocused at {z:g} m", linear),
+            )
+            write_image(tmp / f"refocus_{z:g}m.png", encode_u16(rf), srgb=True)
         if save_views:
             (tmp / "views").mkdir()
             C = cal.grid[1]
             for i, v in enumerate(result.views):
                 r, c = divmod(i, C)
-                write_image(tmp / "views" / f"view_{r}_{c}.png", encode_u8(v))
+                write_image(tmp / "views" / f"view_{r}_{c}.png", encode_u8(_crop(v, fr)), srgb=True)
         finite = np.isfinite(depth)
         seen = cal.masks[cal.reference]
         stats = {
@@ -178,17 +338,26 @@ def write_capture(
         info = {
             "source": result.source,
             "capture": result.metadata.to_dict(),
-            "depth_units": "m" if d.depth is not None else "relative (t = s Z_c / Z_b)",
+            "depth_units": z_unit,
             "xy_units": units,
+            "points_frame": "front lens: X right, Y down, Z forward",
+            "frame": fr,
             "rect_shape": list(cal.rect_shape),
             "reference": list(cal.reference_rc),
             "timings_s": result.timings,
             "statistics": stats,
+            "degenerate": stats["coverage"] < MIN_COVERAGE,
             **novel_info,
             **(extra or {}),
         }
         (tmp / "result.json").write_text(json.dumps(info, indent=2, default=str))
     return out
+
+
+def _version() -> str:
+    from . import __version__
+
+    return str(__version__)
 
 
 def _finite_or_none(obj: Any) -> Any:
@@ -241,11 +410,34 @@ def write_lightfield(
     out = Path(out_dir)
     disp = result.parallax.astype(np.float32)
     finite = np.isfinite(disp)
+    frame = "the reference view's image, whole"
+
+    def meta(quantity: str, unit: str | None) -> dict[str, Any]:
+        return {
+            "quantity": quantity,
+            "unit": unit,
+            "nan": "NaN: unknown",
+            "frame": frame,
+            "reference": list(lf.reference_rc),
+            "software": f"lfcam {_version()}",
+        }
+
     with atomic_folder(out) as tmp:
-        write_image(tmp / "disparity.tiff", disp)
+        write_image(
+            tmp / "disparity.tiff",
+            disp,
+            description=meta(
+                "disparity, HCI sign (positive nearer than the zero-parallax plane)",
+                "px per grid step",
+            ),
+        )
         write_pfm(tmp / "disparity.pfm", disp)
-        write_image(tmp / "disparity.png", colour_depth(disp, unit="px", near_high=True))
-        write_image(tmp / "confidence.tiff", result.confidence.astype(np.float32))
+        write_image(tmp / "disparity.png", colour_depth(disp, unit="px", near_high=True), srgb=True)
+        write_image(
+            tmp / "confidence.tiff",
+            result.confidence.astype(np.float32),
+            description=meta("disparity confidence, 0 (none) to 1", None),
+        )
         stats: dict[str, Any] = {
             "coverage": float(finite.mean()),
             "disparity_median_px": _median(disp),
@@ -266,14 +458,28 @@ def write_lightfield(
             " (HCI convention: centre pixel (x, y) appears in view (r, c) at"
             " (x - d (c - c_ref), y - d (r - r_ref)))",
             "metric": lf.metric,
+            "frame": frame,
         }
         if lf.metric and lf.parameters is not None:
             depth = lf.disparity_to_depth(disp)
-            write_image(tmp / "depth.tiff", depth)
-            write_image(tmp / "depth.png", colour_depth(depth))
+            write_image(
+                tmp / "depth.tiff",
+                depth,
+                description=meta("depth Z along the reference camera's axis", "m"),
+            )
+            write_image(tmp / "depth.png", colour_depth(depth), srgb=True)
             pts, idx = points_from_lightfield(depth, lf)
             ref = lf.to_float()[lf.reference]
-            write_ply(tmp / "points.ply", pts, rgb_u8(ref[idx[:, 0], idx[:, 1]]))
+            write_ply(
+                tmp / "points.ply",
+                pts,
+                rgb_u8(ref[idx[:, 0], idx[:, 1]]),
+                comments=[
+                    "units X, Y, Z m",
+                    "frame reference camera: X right, Y down, Z along the optical axis",
+                    "colour sRGB-encoded reference view",
+                ],
+            )
             info["depth_units"] = "m"
             info["xy_units"] = "m"
             info["points_frame"] = (
@@ -294,6 +500,7 @@ def write_lightfield(
         stats["flow_residual_median_px"] = _median(result.residual)
         stats["perpendicular_median_px"] = _median(result.perpendicular)
         info["statistics"] = stats
+        info["degenerate"] = stats["coverage"] < MIN_COVERAGE
         if lf.ground_truth is not None:
             gt_info: dict[str, Any] = {"view": list(lf.ground_truth_view or lf.reference_rc)}
             if lf.ground_truth_view == lf.reference_rc:

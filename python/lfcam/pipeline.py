@@ -15,8 +15,16 @@ from pathlib import Path
 
 import numpy as np
 
+from ._validate import check_instance
 from .calibration import Calibration
-from .io import CaptureMetadata, read_metadata, read_raw
+from .io import (
+    MAX_IMAGE_FILE_BYTES,
+    CaptureMetadata,
+    is_image_file,
+    read_file_bytes,
+    read_metadata,
+    read_raw,
+)
 from .processing import DepthParams, DepthResult, estimate_depth, rectify
 from .products import refocus as refocus_at
 from .products import super_resolve
@@ -76,13 +84,18 @@ def process_capture(
         ``views`` (rectified), ``depth`` (a :class:`DepthResult`), ``timings``,
         ``metadata`` (the file's focal length, exposure, ISO, aperture, camera).
     """
+    check_instance(cal, Calibration, "cal")
     t0 = time.perf_counter()
     source = None
     metadata = CaptureMetadata()
     if isinstance(raw_or_path, (str, os.PathLike)):
         source = str(raw_or_path)
-        raw = read_raw(Path(raw_or_path), cal.bayer)
-        metadata = read_metadata(Path(raw_or_path))
+        # Pixels and metadata from one read of the file (read_raw words any error).
+        data = None
+        if is_image_file(Path(raw_or_path)):
+            data = read_file_bytes(raw_or_path, MAX_IMAGE_FILE_BYTES)
+        raw = read_raw(Path(raw_or_path), cal.bayer, data=data)
+        metadata = read_metadata(Path(raw_or_path), data=data)
     else:
         raw = np.asarray(raw_or_path)
     t1 = time.perf_counter()

@@ -20,11 +20,19 @@ from typing import Any
 
 from ..calibration import Calibration
 from ..errors import InputError
-from .task import CaptureOutcome, CaptureTask, ProcessOptions, load_calibration, run_capture
+from .task import (
+    CaptureOutcome,
+    CaptureTask,
+    ProcessOptions,
+    failure_reason,
+    load_calibration,
+    run_capture,
+)
 
 __all__ = [
     "EXTRA",
     "JOBQUEUE_SYSTEMS",
+    "WORKER_TIMEOUT_S",
     "calibration_loads",
     "cluster_client",
     "cluster_shape",
@@ -35,6 +43,9 @@ __all__ = [
 
 #: How to install what this module needs.
 EXTRA = 'pip install "lfcam[dask]"'
+#: Seconds a batch waits for the first worker of a cluster to join (the jobs of a
+#: dask-jobqueue cluster may wait in the queue).
+WORKER_TIMEOUT_S = 300.0
 #: ``--cluster`` names started through dask-jobqueue, and their cluster classes.
 JOBQUEUE_SYSTEMS = {
     "slurm": "SLURMCluster",
@@ -207,15 +218,32 @@ def _cluster_task(
         _, threads = _setup_worker()
         calibration = _worker_calibration(cal, sha256)
     except Exception as exc:  # this worker cannot serve the batch: the capture says why
-        return CaptureOutcome(task.source, task.out, "failed", f"{type(exc).__name__}: {exc}")
+        return CaptureOutcome(task.source, task.out, "failed", failure_reason(exc))
     return run_capture(task, calibration, options, extra, threads=threads, wait=wait)
 
 
 # ---------------------------------------------------------------------------
 # In the calling process
 # ---------------------------------------------------------------------------
-def cluster_shape(client: Any) -> tuple[int, int]:
-    """(workers, threads per worker) of the cluster now (threads: the largest)."""
+def cluster_shape(client: Any, timeout: float = WORKER_TIMEOUT_S) -> tuple[int, int]:
+    """(workers, threads per worker) of the cluster (threads: the largest), once at
+    least one worker has joined it.
+
+    Raises
+    ------
+    InputError
+        If no worker joins within ``timeout`` seconds (naming the cluster).
+    """
+    try:
+        client.wait_for_workers(1, timeout=timeout)
+    except TimeoutError:
+        cluster = getattr(client, "cluster", None)
+        address = client.scheduler.address
+        where = address if cluster is None else f"{type(cluster).__name__} at {address}"
+        raise InputError(
+            f"cluster {where}: no Dask worker joined within {timeout:g} s"
+            " (are its jobs still waiting in the queue?)"
+        ) from None
     info = client.scheduler_info()
     threads = [w.get("nthreads", 1) for w in info.get("workers", {}).values()]
     return len(threads), max(threads, default=1)
@@ -248,7 +276,7 @@ def run_on_cluster(
             outcome = fut.result()
         except Exception as exc:  # Dask's own failure (e.g. KilledWorker): this capture's
             outcome = CaptureOutcome(
-                task.source, task.out, "failed", f"on the cluster: {type(exc).__name__}: {exc}"
+                task.source, task.out, "failed", f"on the cluster: {failure_reason(exc)}"
             )
         fut.release()
         yield k, outcome

@@ -28,6 +28,7 @@ from .task import (
     CaptureOutcome,
     CaptureTask,
     ProcessOptions,
+    as_tuple,
     is_complete,
     load_calibration,
     result_extra,
@@ -79,6 +80,8 @@ def find_captures(
 
     A file ``x.png`` goes to ``OUT/x``; a folder is searched recursively and
     ``IN/a/b.png`` goes to ``OUT/a/b``, leaving out anything inside ``OUT`` itself.
+    Two captures whose output folders are the same, or one inside the other (``IN/a.png``
+    and ``IN/a/b.png``), are an :class:`~lfcam.InputError` naming both.
     """
     out = Path(out_dir)
     items = [inputs] if isinstance(inputs, (str, os.PathLike)) else list(inputs)
@@ -103,11 +106,23 @@ def find_captures(
         tasks += [
             CaptureTask(str(p), str(out / p.relative_to(path).with_suffix(""))) for p in found
         ]
-    seen: dict[str, str] = {}
+    # One output folder inside another would be deleted when the outer one is written.
+    seen: dict[tuple[str, ...], CaptureTask] = {}
     for t in tasks:
-        if t.out in seen:
-            raise InputError(f"{t.source}: has the same output folder as {seen[t.out]} ({t.out})")
-        seen[t.out] = t.source
+        parts = Path(t.out).parts
+        if parts in seen:
+            raise InputError(
+                f"{t.source}: has the same output folder as {seen[parts].source} ({t.out})"
+            )
+        seen[parts] = t
+    for parts, t in seen.items():
+        for n in range(1, len(parts)):
+            outer = seen.get(parts[:n])
+            if outer is not None:
+                raise InputError(
+                    f"{t.source}: its output folder {t.out} is inside that of"
+                    f" {outer.source} ({outer.out}), which writing it would replace"
+                )
     return tasks
 
 
@@ -151,6 +166,7 @@ def process_folder(
     out_dir: str | os.PathLike[str],
     *,
     client: Any = None,
+    worker_timeout: float | None = None,
     jobs: int = 1,
     threads: int | None = None,
     progress: Callable[[CaptureOutcome, int, int], None] | None = None,
@@ -177,6 +193,9 @@ def process_folder(
     client : dask.distributed.Client, optional
         Run the captures on this Dask cluster, one task each (needs ``lfcam[dask]``
         and a file system the workers share with the caller).
+    worker_timeout : float, optional
+        Seconds to wait for the cluster's first worker to join (default
+        :data:`lfcam.batch.cluster.WORKER_TIMEOUT_S`); then an :class:`~lfcam.InputError`.
     jobs : int
         Local worker processes; 1 processes the captures in the calling process.
     threads : int, optional
@@ -195,7 +214,8 @@ def process_folder(
     Raises
     ------
     InputError
-        If an input is missing or has no captures, or an option does not fit ``cal``.
+        If an input is missing or has no captures, an option is malformed or does not
+        fit ``cal``, or no worker of ``client``'s cluster joins within ``worker_timeout``.
     CalibrationError
         If ``cal`` cannot be loaded.
     """
@@ -208,6 +228,7 @@ def process_folder(
             f"{', '.join(sorted(set(option_values) - fields))}: not an option"
             f" (options: {', '.join(sorted(fields))})"
         ) from None
+    opts = replace(opts, refocus=as_tuple(opts.refocus))  # a list is fine: stored as a tuple
     if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
         raise InputError(f"jobs: must be an integer >= 1, got {jobs!r}")
     if threads is not None and (not isinstance(threads, int) or threads < 1):
@@ -249,7 +270,10 @@ def process_folder(
 
         if jobs != 1:
             raise InputError("jobs: not with a client (the cluster's workers run the captures)")
-        workers, nthreads = cluster_shape(client)
+        if worker_timeout is None:
+            workers, nthreads = cluster_shape(client)
+        else:
+            workers, nthreads = cluster_shape(client, worker_timeout)
         extra = result_extra(cal_path, sha256, opts, {"jobs": workers, "threads": nthreads})
 
         def runner(batch: list[tuple[CaptureTask, bool]]) -> Iterator[tuple[int, Any]]:

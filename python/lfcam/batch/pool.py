@@ -28,6 +28,11 @@ from ..errors import LfcamError
 __all__ = ["WorkerDied", "run_pool"]
 
 
+# Workers in a row that may die between tasks (after their last result, before their
+# next task) and be replaced.
+_MAX_IDLE_DEATHS = 3
+
+
 @dataclass(frozen=True)
 class WorkerDied:
     """The outcome of a task whose worker process died while running it."""
@@ -132,11 +137,15 @@ def run_pool(
     Raises
     ------
     LfcamError
-        If a worker cannot start (``init`` raised, or it died before it was ready).
+        If a worker cannot start (``init`` raised, or it died before it was ready), or
+        more than ``_MAX_IDLE_DEATHS`` workers in a row die between tasks.
     """
     ctx = mp.get_context("spawn")
     queue = deque(enumerate(tasks))
     workers: list[_Worker] = []
+    # Workers that died between tasks since the last result: a few are replaced, more
+    # mean no worker can live long enough to take a task.
+    idle_deaths = 0
 
     def start() -> None:
         workers.append(_Worker(ctx, init, init_args, func))
@@ -144,7 +153,13 @@ def run_pool(
     def feed(w: _Worker) -> None:
         if queue:
             w.current, task = queue.popleft()
-            w.conn.send((w.current, task))
+            try:
+                w.conn.send((w.current, task))
+            except OSError:
+                # The worker died after its last message: the task goes back to the
+                # queue, and the worker is replaced when its pipe reports the end.
+                queue.appendleft((w.current, task))
+                w.current = None
         else:
             w.current = None
             with contextlib.suppress(OSError):
@@ -167,13 +182,22 @@ def run_pool(
                         ) from None
                     if w.current is not None:
                         yield w.current, WorkerDied(w.proc.exitcode)
-                        if queue:
-                            start()
+                    elif queue:
+                        idle_deaths += 1
+                        if idle_deaths > _MAX_IDLE_DEATHS:
+                            last = WorkerDied(w.proc.exitcode)
+                            raise LfcamError(
+                                "worker processes keep dying before they get a task"
+                                f" ({idle_deaths} in a row; the last: {last})"
+                            ) from None
+                    if queue:
+                        start()
                     continue
                 if kind == "init-error":
                     raise LfcamError(f"a worker process could not start: {payload}")
                 if kind == "result":
                     w.current = None
+                    idle_deaths = 0
                     yield payload
                 w.ready = True
                 feed(w)

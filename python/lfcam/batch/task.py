@@ -16,16 +16,18 @@ from pathlib import Path
 from typing import Any
 
 from ..calibration import Calibration
-from ..errors import CalibrationError, InputError, LfcamError
-from ..io import file_hash
+from ..errors import InputError, LfcamError
 from ..io.lock import LockBusy, path_lock
-from ..outputs import NovelViewOptions, write_capture
+from ..kernels import INTERPOLATIONS
+from ..outputs import FRAMES, NovelViewOptions, write_capture
 from ..pipeline import process_capture
 
 __all__ = [
     "CaptureOutcome",
     "CaptureTask",
     "ProcessOptions",
+    "as_tuple",
+    "failure_reason",
     "is_complete",
     "load_calibration",
     "run_capture",
@@ -51,6 +53,9 @@ class ProcessOptions:
         Redo captures whose output folder is complete (else they are skipped).
     interp : str
         Rectification resampling.
+    frame : {'valid', 'full'}
+        The image outputs' frame (:func:`lfcam.outputs.output_frame`): cut to the
+        reference view's valid box, or the calibration's whole rectified frame.
     """
 
     save_views: bool = False
@@ -59,16 +64,27 @@ class ProcessOptions:
     novel: NovelViewOptions | None = None
     overwrite: bool = False
     interp: str = "bilinear"
+    frame: str = "valid"
 
     def check(self, cal: Calibration) -> None:
-        """Raise :class:`~lfcam.InputError` naming the option that ``cal`` cannot serve."""
+        """Raise :class:`~lfcam.InputError` naming the option that is malformed or that
+        ``cal`` cannot serve."""
+        if self.frame not in FRAMES:
+            raise InputError(f"frame: expected one of {', '.join(FRAMES)}, got {self.frame!r}")
         if self.superres is not None and not (
-            isinstance(self.superres, int) and 1 <= self.superres <= 4
+            isinstance(self.superres, int)
+            and not isinstance(self.superres, bool)
+            and 1 <= self.superres <= 4
         ):
             raise InputError(f"superres: expected a factor from 1 to 4, got {self.superres!r}")
+        if not isinstance(self.interp, str) or self.interp not in INTERPOLATIONS:
+            choices = ", ".join(repr(i) for i in INTERPOLATIONS)
+            raise InputError(f"interp: expected one of {choices}, got {self.interp!r}")
+        if not isinstance(self.refocus, tuple):
+            raise InputError(f"refocus: expected a tuple of distances, got {self.refocus!r}")
         if self.refocus and not cal.metric:
             raise InputError("refocus: the calibration is relative (no Z_c): no metric focus")
-        bad = [z for z in self.refocus if not z > cal.z_c]
+        bad = [z for z in self.refocus if not (math.isfinite(z) and z > cal.z_c)]
         if bad:
             raise InputError(f"refocus: distances must be beyond Z_c = {cal.z_c:.3f} m: {bad}")
         n = self.novel
@@ -125,17 +141,14 @@ def load_calibration(path: str | os.PathLike[str], sha256: str | None) -> Calibr
 
     A worker loads the batch's calibration once; the check catches a file replaced
     since the batch started, or a shared path that shows another file on this host.
+    The file hashed is the file parsed (:meth:`Calibration.load`).
     """
-    if sha256 is not None:
-        got = file_hash(path)
-        if got != sha256:
-            raise CalibrationError(
-                f"{path}: sha256 {got} differs from the batch's calibration ({sha256})"
-            )
-    return Calibration.load(path)
+    return Calibration.load(path, sha256=sha256)
 
 
-def _reason(exc: BaseException) -> str:
+def failure_reason(exc: BaseException) -> str:
+    """Why a capture failed, in words: an lfcam error's message, else the exception's
+    type and message."""
     if isinstance(exc, LfcamError):
         return str(exc)
     if isinstance(exc, MemoryError):
@@ -184,12 +197,13 @@ def run_capture(
                 extra=extra,
                 save_views=options.save_views,
                 novel=options.novel,
+                frame=options.frame,
             )
         return outcome("done", timings=dict(res.timings))
     except LockBusy:
         return outcome("busy")
     except Exception as exc:  # any failure is this capture's, reported with its reason
-        return outcome("failed", _reason(exc))
+        return outcome("failed", failure_reason(exc))
 
 
 def result_extra(
@@ -209,6 +223,14 @@ def result_extra(
     return extra
 
 
-def as_tuple(values: Sequence[float] | None) -> tuple[float, ...]:
-    """A sequence of distances as a tuple of floats (``None``: empty)."""
-    return tuple(float(v) for v in values or ())
+def as_tuple(values: Sequence[float] | None, name: str = "refocus") -> tuple[float, ...]:
+    """A sequence of distances as a tuple of floats (``None``: empty), or an
+    :class:`~lfcam.InputError` naming argument ``name``."""
+    if values is None:
+        return ()
+    try:
+        if isinstance(values, (str, bytes)):
+            raise TypeError
+        return tuple(float(v) for v in values)
+    except (TypeError, ValueError):
+        raise InputError(f"{name}: expected a sequence of distances, got {values!r}") from None

@@ -84,6 +84,7 @@ per camera setting, say) gets the same checksums by using them.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import math
@@ -96,7 +97,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import Any, BinaryIO, NoReturn
 
 import h5py  # type: ignore[import-untyped]
 import numpy as np
@@ -630,7 +631,7 @@ class Calibration:
     # ----------------------------------------------------------------------- reading
 
     @classmethod
-    def load(cls, path: str | os.PathLike[str]) -> Calibration:
+    def load(cls, path: str | os.PathLike[str], *, sha256: str | None = None) -> Calibration:
         """Read and validate an ``.lfcal`` file.
 
         Parameters
@@ -638,6 +639,9 @@ class Calibration:
         path : path-like
             A file written by :meth:`save` (or by any program following the layout in
             this module's docstring).
+        sha256 : str, optional
+            Refuse the file unless its SHA-256 (:func:`lfcam.io.file_hash`) is this:
+            the bytes hashed are the bytes parsed.
 
         Returns
         -------
@@ -651,10 +655,10 @@ class Calibration:
             If the file is not HDF5, is corrupt or truncated (including a failed
             checksum), is not an lfcam calibration, was written by a newer major
             format version, lacks a dataset or has an unexpected one, or holds
-            inconsistent data. The message starts with the path and names the
-            dataset or attribute at fault.
+            inconsistent data, or its SHA-256 is not ``sha256``. The message starts
+            with the path and names the dataset or attribute at fault.
         """
-        values, _ = _read(path)
+        values, _ = _read(path, sha256)
         return cls(**values)
 
     # ----------------------------------------------------------------------- display
@@ -815,12 +819,8 @@ def _dataset_value(ds: h5py.Dataset) -> Any:
 
 def _seal_file(path: Path) -> None:
     """Write the file's SHA-256 (of everything after the user block) into its user block."""
-    h = hashlib.sha256()
     with open(path, "rb+") as fh:
-        fh.seek(_USERBLOCK_SIZE)
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-        seal = _SEAL_PREFIX + h.hexdigest().encode() + b"\n"
+        seal = _SEAL_PREFIX + file_hash(fh, offset=_USERBLOCK_SIZE).encode() + b"\n"
         fh.seek(0)
         fh.write(seal + bytes(_USERBLOCK_SIZE - len(seal)))
 
@@ -844,39 +844,37 @@ def _seal(path: str | os.PathLike[str]) -> None:
     _seal_file(p)
 
 
-def _check_seal(p: Path, where: str) -> bool:
-    """Verify the whole-file checksum, before anything parses the file.
+def _check_seal(fh: BinaryIO, where: str) -> bool:
+    """Verify the whole-file checksum of an open file, before anything parses it.
 
     Returns True for a sealed (format 1.1 or later) file, False for an HDF5 file
     without a seal (format 1.0, or written by another program).
     """
     try:
-        with open(p, "rb") as fh:
-            head = fh.read(_USERBLOCK_SIZE + len(_HDF5_SIGNATURE))
-            if not head.startswith(_SEAL_PREFIX):
-                if not any(head[o : o + len(_HDF5_SIGNATURE)] == _HDF5_SIGNATURE for o in (0, 512)):
-                    raise CalibrationError(
-                        f"{where}: not an HDF5 file, so not an lfcam calibration (.lfcal)"
-                    )
-                return False
-            seal = head[:_SEAL_LENGTH]
-            stored = seal[len(_SEAL_PREFIX) : -1].decode("ascii", "replace")
-            if (
-                len(head) < _USERBLOCK_SIZE
-                or seal[-1:] != b"\n"
-                or re.fullmatch(r"[0-9a-f]{64}", stored) is None
-                or any(head[_SEAL_LENGTH:_USERBLOCK_SIZE])
-            ):
+        fh.seek(0)
+        head = fh.read(_USERBLOCK_SIZE + len(_HDF5_SIGNATURE))
+        if not head.startswith(_SEAL_PREFIX):
+            if not any(head[o : o + len(_HDF5_SIGNATURE)] == _HDF5_SIGNATURE for o in (0, 512)):
                 raise CalibrationError(
-                    f"{where}: corrupt or truncated: its checksum block (the HDF5 user block) "
-                    "is damaged"
+                    f"{where}: not an HDF5 file, so not an lfcam calibration (.lfcal)"
                 )
-            h = hashlib.sha256(head[_USERBLOCK_SIZE:])
-            for block in iter(lambda: fh.read(1 << 20), b""):
-                h.update(block)
+            return False
+        seal = head[:_SEAL_LENGTH]
+        stored = seal[len(_SEAL_PREFIX) : -1].decode("ascii", "replace")
+        if (
+            len(head) < _USERBLOCK_SIZE
+            or seal[-1:] != b"\n"
+            or re.fullmatch(r"[0-9a-f]{64}", stored) is None
+            or any(head[_SEAL_LENGTH:_USERBLOCK_SIZE])
+        ):
+            raise CalibrationError(
+                f"{where}: corrupt or truncated: its checksum block (the HDF5 user block) "
+                "is damaged"
+            )
+        digest = file_hash(fh, offset=_USERBLOCK_SIZE)
     except OSError as e:
         raise CalibrationError(f"{where}: cannot read file ({e.strerror or e})") from None
-    if h.hexdigest() != stored:
+    if digest != stored:
         raise CalibrationError(
             f"{where}: corrupt or truncated: the file's SHA-256 checksum does not match the "
             "one stored in it (the file was changed or damaged after it was written)"
@@ -884,15 +882,33 @@ def _check_seal(p: Path, where: str) -> bool:
     return True
 
 
+# What the probe's child prints when it has read the file (or refused it with an lfcam
+# error, which the parent then meets and reports itself).
+_PROBE_OK = "lfcam-probe: read"
+_PROBE_CODE = f"""
+import sys
+from lfcam.errors import LfcamError
+from lfcam.calibration.file import _read_hdf5
+try:
+    _read_hdf5(sys.argv[1])
+except LfcamError:
+    pass
+print({_PROBE_OK!r})
+"""
+
+
 def _probe(p: Path, where: str) -> None:
-    """Read an unsealed file in a child process first: a crash or hang there is an error."""
-    code = "import sys; from lfcam.calibration.file import _read_hdf5; _read_hdf5(sys.argv[1])"
+    """Read an unsealed file in a child process first: a crash or hang there is an error,
+    and so is any end of the child other than its success marker and exit code 0."""
+    # The child imports this very lfcam, wherever it was imported from.
+    root = str(Path(__file__).resolve().parents[2])
+    path = os.pathsep.join(x for x in (root, os.environ.get("PYTHONPATH")) if x)
     try:
         run = subprocess.run(
-            [sys.executable, "-c", code, os.fsencode(p)],
+            [sys.executable, "-c", _PROBE_CODE, os.fsencode(p)],
             stdin=subprocess.DEVNULL,
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
+            capture_output=True,
+            env={**os.environ, "PYTHONPATH": path},
             timeout=_PROBE_TIMEOUT_S,
             check=False,
         )
@@ -903,6 +919,13 @@ def _probe(p: Path, where: str) -> None:
     if run.returncode < 0:
         raise CalibrationError(
             f"{where}: corrupt: reading it crashed the HDF5 library (signal {-run.returncode})"
+        )
+    if run.returncode != 0 or run.stdout.splitlines()[-1:] != [_PROBE_OK.encode()]:
+        last = run.stderr.decode("utf-8", "replace").strip().splitlines()[-1:]
+        why = f": {last[0]}" if last else ""
+        raise CalibrationError(
+            f"{where}: a format 1.0 file is read in a child process first, and that"
+            f" failed (exit code {run.returncode}{why})"
         )
 
 
@@ -1074,15 +1097,18 @@ def _parse_report(text: str, where: str) -> Any:
 
 
 def _read_hdf5(
-    path: str | os.PathLike[str], where: str | None = None, *, sealed: bool = False
+    source: str | os.PathLike[str] | BinaryIO, where: str | None = None, *, sealed: bool = False
 ) -> tuple[dict[str, Any], dict[str, Any]]:
-    """Parse a file with h5py: (raw field values, file header). ``sealed``: the user
-    block's checksum was verified, so every dataset and the root carry checksums too."""
-    p = Path(path)
-    where = str(p) if where is None else where
+    """Parse a file (a path, or a file open for reading) with h5py: (raw field values,
+    file header). ``sealed``: the user block's checksum was verified, so every dataset
+    and the root carry checksums too."""
+    if isinstance(source, (str, os.PathLike)):
+        source = Path(source)
+        where = str(source) if where is None else where
+    where = "calibration file" if where is None else where
     raw: dict[str, Any] = {}
     try:
-        with h5py.File(p, "r") as f:
+        with h5py.File(source, "r") as f:
             header = _read_header(f, where)
             version = header["format_version"]
             if not sealed and version >= (1, 1):
@@ -1126,8 +1152,13 @@ def _read_hdf5(
     return raw, header
 
 
-def _read(path: str | os.PathLike[str]) -> tuple[dict[str, Any], dict[str, Any]]:
-    """Verify, read and validate a file: (canonical field values, file header)."""
+def _read(
+    path: str | os.PathLike[str], sha256: str | None = None
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Verify, read and validate a file: (canonical field values, file header).
+
+    One open file is hashed (``sha256``, the seal) and parsed: a file renamed over
+    ``path`` meanwhile is not read in its place."""
     if path is None or not isinstance(path, (str, os.PathLike)):
         raise InputError(f"path: expected a calibration file's path, got {path!r}")
     p = Path(path)
@@ -1138,10 +1169,19 @@ def _read(path: str | os.PathLike[str]) -> tuple[dict[str, Any], dict[str, Any]]
         raise InputError(f"{p}: is a folder, not a calibration file")
     if not p.is_file():
         raise InputError(f"{p}: not a regular file")
-    sealed = _check_seal(p, where)
-    if not sealed:
-        _probe(p, where)
-    raw, header = _read_hdf5(p, where, sealed=sealed)
+    with contextlib.ExitStack() as stack:
+        try:
+            fh = stack.enter_context(open(p, "rb"))
+            got = None if sha256 is None else file_hash(fh)
+        except OSError as e:
+            raise CalibrationError(f"{where}: cannot read file ({e.strerror or e})") from None
+        if got != sha256:
+            raise CalibrationError(f"{where}: sha256 {got} differs from the expected {sha256}")
+        sealed = _check_seal(fh, where)
+        if not sealed:
+            _probe(p, where)
+        fh.seek(0)
+        raw, header = _read_hdf5(fh, where, sealed=sealed)
     if not sealed:
         warnings.warn(
             f"{where}: a format 1.0 calibration file, without checksums: damage to it "

@@ -12,8 +12,12 @@ import cv2
 import numpy as np
 
 from .._validate import check_positive_int
+from ..errors import InputError
 
-__all__ = ["make_pattern", "multiscale_noise", "procedural_texture"]
+__all__ = ["MAX_PATTERN_SIDE", "make_pattern", "multiscale_noise", "procedural_texture"]
+
+#: Largest pattern width or height, px (an 8K screen is 7680 px wide).
+MAX_PATTERN_SIDE = 16384
 
 
 def multiscale_noise(
@@ -158,7 +162,7 @@ def make_pattern(width: int, height: int, seed: int = 0) -> np.ndarray:
     Parameters
     ----------
     width, height : int
-        Size in pixels (each at least 64).
+        Size in pixels (each from 64 to :data:`MAX_PATTERN_SIDE`).
     seed : int, optional
         Random seed. Default 0.
 
@@ -170,7 +174,7 @@ def make_pattern(width: int, height: int, seed: int = 0) -> np.ndarray:
     Raises
     ------
     lfcam.InputError
-        If ``width`` or ``height`` is not an integer >= 64.
+        If ``width`` or ``height`` is not an integer from 64 to :data:`MAX_PATTERN_SIDE`.
 
     Examples
     --------
@@ -181,6 +185,11 @@ def make_pattern(width: int, height: int, seed: int = 0) -> np.ndarray:
     """
     width = check_positive_int(width, "width", minimum=64)
     height = check_positive_int(height, "height", minimum=64)
+    for name, v in (("width", width), ("height", height)):
+        if v > MAX_PATTERN_SIDE:
+            raise InputError(
+                f"{name}: at most {MAX_PATTERN_SIDE} px (beyond any screen or print), got {v}"
+            )
     rng = np.random.default_rng(np.random.SeedSequence([0x1FCA, int(seed) & 0xFFFFFFFF]))
     noise = multiscale_noise(height, width, rng, finest=3.0)[..., 0]
     img = 0.5 + 0.17 * noise

@@ -3,9 +3,10 @@ extra, with their metadata), PFM and ``.flo`` arrays, PLY, atomic writing, displ
 encodings and checksums. The only subpackage that opens files (the
 calibration file's HDF5 layout lives with the :class:`~lfcam.Calibration` type)."""
 
-from .atomic import atomic_folder, atomic_output, write_image_atomic, write_text_atomic
+from .atomic import atomic_folder, atomic_output, write_text_atomic
 from .checksum import file_hash
-from .display import colour_depth, encode_u8, encode_u16, rgb_u8
+from .display import colour_depth, encode_u8, encode_u16, rgb_u8, srgb_decode, srgb_encode
+from .files import read_file_bytes
 from .formats import read_flo, read_pfm, write_pfm
 from .images import (
     BAYER_PATTERNS,
@@ -17,8 +18,10 @@ from .images import (
     is_image_file,
     read_image,
     read_raw,
+    read_tiff_description,
     to_float,
     write_image,
+    write_image_atomic,
 )
 from .ply import write_ply
 from .raw import RAW_EXTENSIONS, CaptureMetadata, is_camera_raw, read_metadata, write_dng
@@ -40,12 +43,16 @@ __all__ = [
     "file_hash",
     "is_camera_raw",
     "is_image_file",
+    "read_file_bytes",
     "read_flo",
     "read_image",
     "read_metadata",
     "read_pfm",
     "read_raw",
+    "read_tiff_description",
     "rgb_u8",
+    "srgb_decode",
+    "srgb_encode",
     "to_float",
     "write_dng",
     "write_image",

@@ -16,19 +16,14 @@ import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
-
-import numpy as np
 
 from ..errors import InputError
-from .images import WRITABLE_EXTENSIONS, write_image
 from .lock import path_lock
 
 __all__ = [
     "atomic_folder",
     "atomic_output",
     "file_mode",
-    "write_image_atomic",
     "write_text_atomic",
 ]
 
@@ -77,16 +72,21 @@ def atomic_folder(out: str | os.PathLike[str]) -> Iterator[Path]:
     On any error the temporary folder is removed and ``out`` is left as it was.
     """
     out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):
+        raise InputError(
+            f"{out}: cannot make its folder {out.parent}: a file is in the way"
+        ) from None
     with path_lock(out):
         tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+        old: Path | None = None
         try:
             yield tmp
             mode = file_mode()
             for p in tmp.rglob("*"):
                 os.chmod(p, (mode | 0o111) if p.is_dir() else mode)
             os.chmod(tmp, mode | 0o111)
-            old = None
             if out.exists():
                 old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
                 os.replace(out, old / out.name)
@@ -94,18 +94,12 @@ def atomic_folder(out: str | os.PathLike[str]) -> Iterator[Path]:
             if old is not None:
                 shutil.rmtree(old, ignore_errors=True)
         except BaseException:
+            # Interrupted between the two renames: the old folder goes back under its name.
+            if old is not None and not os.path.lexists(out) and (old / out.name).is_dir():
+                os.replace(old / out.name, out)
+                shutil.rmtree(old, ignore_errors=True)
             shutil.rmtree(tmp, ignore_errors=True)
             raise
-
-
-def write_image_atomic(path: str | os.PathLike[str], img: np.ndarray, **kw: Any) -> None:
-    """:func:`~lfcam.io.images.write_image` to a temporary name beside ``path``, then
-    rename."""
-    p = Path(path)
-    if p.suffix.lower() not in WRITABLE_EXTENSIONS:
-        raise InputError(f"{p}: unsupported output type {p.suffix!r} (use .png, .tif or .tiff)")
-    with atomic_output(p) as tmp:
-        write_image(tmp, img, **kw)
 
 
 def write_text_atomic(path: str | os.PathLike[str], text: str) -> None:

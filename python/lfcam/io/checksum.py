@@ -5,21 +5,26 @@ from __future__ import annotations
 import hashlib
 import os
 from pathlib import Path
+from typing import BinaryIO
 
 from ..errors import InputError
 
 __all__ = ["file_hash"]
 
 
-def file_hash(path: str | os.PathLike[str]) -> str:
-    """SHA-256 of a file's bytes, as 64 hex digits.
+def file_hash(source: str | os.PathLike[str] | BinaryIO, *, offset: int = 0) -> str:
+    """SHA-256 of a file's bytes from ``offset`` to its end, as 64 hex digits.
 
-    Processing outputs record it to say which calibration they used.
+    Processing outputs record it to say which calibration they used; the calibration
+    file's own checksum covers what follows its user block.
 
     Parameters
     ----------
-    path : path-like
-        Any file, usually an ``.lfcal``.
+    source : path-like or binary file object
+        Any file, usually an ``.lfcal``, or a file already open for reading (read from
+        ``offset``; its position is left at the end).
+    offset : int
+        Bytes to leave out at the start.
 
     Returns
     -------
@@ -28,13 +33,16 @@ def file_hash(path: str | os.PathLike[str]) -> str:
     Raises
     ------
     InputError
-        If ``path`` is not an existing file.
+        If ``source`` is a path and not an existing file.
     """
-    p = Path(path)
-    if not p.is_file():
-        raise InputError(f"{p}: no such file")
+    if isinstance(source, (str, os.PathLike)):
+        p = Path(source)
+        if not p.is_file():
+            raise InputError(f"{p}: no such file")
+        with open(p, "rb") as fh:
+            return file_hash(fh, offset=offset)
     h = hashlib.sha256()
-    with open(p, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
+    source.seek(offset)
+    for block in iter(lambda: source.read(1 << 20), b""):
+        h.update(block)
     return h.hexdigest()

@@ -1,7 +1,9 @@
 """Display encodings: linear [0, 1] values as 8 and 16-bit pictures, and colour maps.
 
 Every picture lfcam writes for people (previews, super-resolved and refocused
-PNGs, mesh and point colours) is encoded here, with one transfer curve.
+PNGs, mesh and point colours) is encoded here, with one transfer curve: sRGB
+(IEC 61966-2-1), which the PNG files also declare (an ``sRGB`` chunk, see
+:func:`lfcam.io.write_image`), so viewers and scripts decode them the same way.
 """
 
 from __future__ import annotations
@@ -9,31 +11,59 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["DISPLAY_GAMMA", "colour_depth", "encode_u8", "encode_u16", "rgb_u8"]
+__all__ = ["colour_depth", "encode_u8", "encode_u16", "rgb_u8", "srgb_decode", "srgb_encode"]
 
-#: The display transfer curve: a linear value x is stored as ``x ** (1 / DISPLAY_GAMMA)``.
-DISPLAY_GAMMA = 2.2
+
+def srgb_encode(x: np.ndarray) -> np.ndarray:
+    """Linear [0, 1] -> sRGB-encoded [0, 1] (IEC 61966-2-1), float64; clipped, NaN = 0.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> srgb_encode(np.array([0.0, 0.0031308, 0.5, 1.0])).round(6)
+    array([0.      , 0.04045 , 0.735357, 1.      ])
+    """
+    v = np.clip(np.nan_to_num(np.asarray(x, np.float64), nan=0.0), 0, 1)
+    out: np.ndarray = np.where(v <= 0.0031308, 12.92 * v, 1.055 * np.power(v, 1 / 2.4) - 0.055)
+    return out
+
+
+def srgb_decode(v: np.ndarray) -> np.ndarray:
+    """sRGB-encoded values -> linear [0, 1], float64; integers are scaled by their
+    type's maximum (uint8 / 255, uint16 / 65535). The inverse of :func:`srgb_encode`.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> srgb_decode(np.array([0, 188, 255], np.uint8)).round(4)
+    array([0.    , 0.5029, 1.    ])
+    """
+    a = np.asarray(v)
+    if a.dtype.kind in "ui":
+        a = a / float(np.iinfo(a.dtype).max)
+    e = np.asarray(a, np.float64)
+    out: np.ndarray = np.where(e <= 0.04045, e / 12.92, np.power((e + 0.055) / 1.055, 2.4))
+    return out
 
 
 def _encode(img: np.ndarray, top: int, dtype: type[np.generic]) -> np.ndarray:
-    x = np.nan_to_num(np.asarray(img, np.float64), nan=0.0)
-    out: np.ndarray = np.round(np.clip(x, 0, 1) ** (1 / DISPLAY_GAMMA) * top).astype(dtype)
+    out: np.ndarray = np.round(srgb_encode(img) * top).astype(dtype)
     return out
 
 
 def encode_u8(img: np.ndarray) -> np.ndarray:
-    """Linear [0, 1] (NaN = 0) -> 8-bit with the display gamma."""
+    """Linear [0, 1] (NaN = 0) -> 8-bit sRGB."""
     return _encode(img, 255, np.uint8)
 
 
 def encode_u16(img: np.ndarray) -> np.ndarray:
-    """Linear [0, 1] (NaN = 0) -> 16-bit with the display gamma."""
+    """Linear [0, 1] (NaN = 0) -> 16-bit sRGB."""
     return _encode(img, 65535, np.uint16)
 
 
 def rgb_u8(colours: np.ndarray) -> np.ndarray:
     """Linear per-point colours ``(M,)``, ``(M, 1)`` or ``(M, C >= 3)`` -> ``(M, 3)`` uint8
-    RGB with the display gamma (grey repeated)."""
+    sRGB (grey repeated)."""
     c = np.asarray(colours)
     if c.ndim == 1:
         c = c[:, None]

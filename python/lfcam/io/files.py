@@ -9,7 +9,20 @@ from pathlib import Path
 
 from ..errors import InputError
 
-__all__ = ["MAX_IMAGE_FILE_BYTES", "read_file_bytes"]
+__all__ = [
+    "MAX_IMAGE_FILE_BYTES",
+    "MAX_IMAGE_PIXELS",
+    "MAX_IMAGE_SIDE",
+    "check_image_size",
+    "read_file_bytes",
+]
+
+#: Largest width or height of an image lfcam reads (px); checked in the file's header
+#: before anything is decoded.
+MAX_IMAGE_SIDE = 65_535
+#: Largest number of pixels (width x height) of an image lfcam reads: 2**28, about
+#: 268 megapixels (1 GiB per float32 channel), beyond any light-field sensor.
+MAX_IMAGE_PIXELS = 1 << 28
 
 #: Largest image file lfcam reads into memory, bytes (a 16-bit RGB TIFF at
 #: ``MAX_IMAGE_PIXELS`` is 1.5 GiB).
@@ -37,10 +50,33 @@ def read_file_bytes(path: str | os.PathLike[str], limit: int) -> bytes:
                 raise InputError(f"{p}: not a regular file")
             if st.st_size > limit:
                 raise InputError(f"{p}: {st.st_size} bytes, larger than lfcam reads ({limit})")
-            return fh.read(limit + 1)
+            data = fh.read(limit + 1)
+            if len(data) > limit:  # it grew since fstat
+                raise InputError(f"{p}: more than {limit} bytes, larger than lfcam reads")
+            return data
     except FileNotFoundError:
         raise InputError(f"{p}: no such file") from None
     except IsADirectoryError:
         raise InputError(f"{p}: is a folder, not a file") from None
     except OSError as e:
         raise InputError(f"{p}: cannot read ({e.strerror or e})") from None
+
+
+def check_image_size(width: int, height: int, channels: int, where: str) -> None:
+    """Refuse an image size a file's header declares, before anything is decoded.
+
+    Raises
+    ------
+    lfcam.InputError
+        Naming ``where``, if the image is empty, has other than 1 to 4 channels, or
+        is larger than :data:`MAX_IMAGE_SIDE` / :data:`MAX_IMAGE_PIXELS`.
+    """
+    if width < 1 or height < 1:
+        raise InputError(f"{where}: the header declares an empty {width} x {height} image")
+    if channels not in (1, 2, 3, 4):
+        raise InputError(f"{where}: the header declares {channels} channels (expected 1 to 4)")
+    if max(width, height) > MAX_IMAGE_SIDE or width * height > MAX_IMAGE_PIXELS:
+        raise InputError(
+            f"{where}: the header declares a {width} x {height} image, larger than lfcam "
+            f"reads ({MAX_IMAGE_SIDE} px a side, {MAX_IMAGE_PIXELS} px in all)"
+        )

@@ -8,15 +8,27 @@ float32 goes to TIFF.
 from __future__ import annotations
 
 import io
+import json
 import os
 import struct
+import zlib
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
 
+from .._validate import check_path
 from ..errors import InputError
-from .files import MAX_IMAGE_FILE_BYTES, read_file_bytes
+from .atomic import atomic_output
+from .files import (
+    MAX_IMAGE_FILE_BYTES,
+    MAX_IMAGE_PIXELS,
+    MAX_IMAGE_SIDE,
+    check_image_size,
+    read_file_bytes,
+)
 from .raw import RAW_EXTENSIONS, is_camera_raw, read_camera_raw
 
 __all__ = [
@@ -30,8 +42,10 @@ __all__ = [
     "is_image_file",
     "read_image",
     "read_raw",
+    "read_tiff_description",
     "to_float",
     "write_image",
+    "write_image_atomic",
 ]
 
 #: Bayer mosaics, named by the colours of the top-left 2 x 2 block, row by row.
@@ -45,12 +59,6 @@ IMAGE_EXTENSIONS = (".png", ".tif", ".tiff", ".jpg", ".jpeg", *RAW_EXTENSIONS)
 #: File extensions lfcam writes images to.
 WRITABLE_EXTENSIONS = (".png", ".tif", ".tiff")
 
-#: Largest width or height of an image lfcam reads (px); checked in the file's header
-#: before anything is decoded.
-MAX_IMAGE_SIDE = 65_535
-#: Largest number of pixels (width x height) of an image lfcam reads: 2**28, about
-#: 268 megapixels (1 GiB per float32 channel), beyond any light-field sensor.
-MAX_IMAGE_PIXELS = 1 << 28
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 # PNG colour type -> channels (0 grey, 2 RGB, 3 palette, 4 grey + alpha, 6 RGBA).
 _PNG_CHANNELS = {0: 1, 2: 3, 3: 3, 4: 2, 6: 4}
@@ -100,18 +108,6 @@ def _jpeg_header(data: bytes, where: str) -> tuple[int, int, int]:
     raise InputError(f"{where}: not a readable JPEG (no frame header)")
 
 
-def _check_size(width: int, height: int, channels: int, where: str) -> None:
-    if width < 1 or height < 1:
-        raise InputError(f"{where}: the header declares an empty {width} x {height} image")
-    if channels not in (1, 2, 3, 4):
-        raise InputError(f"{where}: the header declares {channels} channels (expected 1 to 4)")
-    if max(width, height) > MAX_IMAGE_SIDE or width * height > MAX_IMAGE_PIXELS:
-        raise InputError(
-            f"{where}: the header declares a {width} x {height} image, larger than lfcam "
-            f"reads ({MAX_IMAGE_SIDE} px a side, {MAX_IMAGE_PIXELS} px in all)"
-        )
-
-
 def _decode_tiff(data: bytes, where: str) -> np.ndarray:
     import tifffile
 
@@ -131,7 +127,7 @@ def _decode_tiff(data: bytes, where: str) -> np.ndarray:
                 raise InputError(
                     f"{where}: unsupported pixel type {series.dtype} (use 8/16-bit or float32)"
                 )
-            _check_size(shape[1], shape[0], shape[2], where)
+            check_image_size(shape[1], shape[0], shape[2], where)
             img = series.asarray()
     except InputError:
         raise
@@ -145,7 +141,7 @@ def _decode_tiff(data: bytes, where: str) -> np.ndarray:
 def _decode_cv2(data: bytes, ext: str, where: str) -> np.ndarray:
     kind = "PNG" if ext == ".png" else "JPEG"
     width, height, channels = (_png_header if ext == ".png" else _jpeg_header)(data, where)
-    _check_size(width, height, channels, where)
+    check_image_size(width, height, channels, where)
     try:
         img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     except cv2.error as exc:
@@ -171,13 +167,16 @@ def is_image_file(path: Path) -> bool:
     )
 
 
-def read_image(path: str | os.PathLike[str]) -> np.ndarray:
+def read_image(path: str | os.PathLike[str], *, data: bytes | None = None) -> np.ndarray:
     """Read a PNG, TIFF, JPEG or camera raw image without changing its bit depth.
 
     Parameters
     ----------
     path : path-like
         The image file.
+    data : bytes, optional
+        Its bytes, already read (:func:`lfcam.io.files.read_file_bytes`): decoded
+        instead of reading ``path`` again, which then only names the file and its type.
 
     Returns
     -------
@@ -196,8 +195,10 @@ def read_image(path: str | os.PathLike[str]) -> np.ndarray:
     -----
     The file is read by Python and decoded from memory (``cv2.imdecode``, tifffile),
     never opened by a decoder by name, and the size its header declares is checked
-    before decoding: no file name or content can crash the process (docs/robustness.md).
+    before decoding: no file name or content can crash the process (docs/design.md,
+    "Processing pipeline").
     """
+    check_path(path, "path")
     p = Path(path)
     ext = p.suffix.lower()
     if ext not in IMAGE_EXTENSIONS:
@@ -205,13 +206,16 @@ def read_image(path: str | os.PathLike[str]) -> np.ndarray:
             f"{p}: unsupported image type {p.suffix!r} (use PNG, TIFF, JPEG or camera raw)"
         )
     if is_camera_raw(p):
-        img = read_camera_raw(p)[0]
-    elif ext in (".tif", ".tiff"):
-        img = _decode_tiff(read_file_bytes(p, MAX_IMAGE_FILE_BYTES), str(p))
-        if img.ndim == 3 and img.shape[2] == 1:
-            img = img[..., 0]
+        img = read_camera_raw(p, data=data)[0]
     else:
-        img = _decode_cv2(read_file_bytes(p, MAX_IMAGE_FILE_BYTES), ext, str(p))
+        if data is None:
+            data = read_file_bytes(p, MAX_IMAGE_FILE_BYTES)
+        if ext in (".tif", ".tiff"):
+            img = _decode_tiff(data, str(p))
+            if img.ndim == 3 and img.shape[2] == 1:
+                img = img[..., 0]
+        else:
+            img = _decode_cv2(data, ext, str(p))
     if img.ndim == 3 and img.shape[2] == 4:
         img = img[..., :3]
     if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] != 3):
@@ -221,8 +225,32 @@ def read_image(path: str | os.PathLike[str]) -> np.ndarray:
     return np.ascontiguousarray(img)
 
 
-def write_image(path: str | os.PathLike[str], img: np.ndarray, *, compression: int = 3) -> None:
-    """Write ``img`` (grey or RGB; uint8/uint16 to PNG or TIFF, float32 to TIFF)."""
+def write_image(
+    path: str | os.PathLike[str],
+    img: np.ndarray,
+    *,
+    compression: int = 3,
+    srgb: bool = False,
+    description: Mapping[str, Any] | None = None,
+) -> None:
+    """Write ``img`` (grey or RGB; uint8/uint16 to PNG or TIFF, float32 to TIFF).
+
+    Parameters
+    ----------
+    path : path-like
+        ``.png``, ``.tif`` or ``.tiff``.
+    img : (H, W) or (H, W, 3) array
+        The pixels, RGB order.
+    compression : int
+        Deflate level, 0 (none) to 9: PNG, and TIFF (zlib compression).
+    srgb : bool
+        PNG only: the values are sRGB-encoded (:func:`lfcam.io.encode_u8`); the file
+        says so with an ``sRGB`` chunk (perceptual intent) and the matching ``gAMA``
+        (1/2.2) for readers that only know gamma.
+    description : mapping, optional
+        TIFF only: stored as JSON in the ImageDescription tag (what the values are:
+        quantity, unit, frame); read it back with :func:`read_tiff_description`.
+    """
     p = Path(path)
     ext = p.suffix.lower()
     if ext not in WRITABLE_EXTENSIONS:
@@ -233,19 +261,87 @@ def write_image(path: str | os.PathLike[str], img: np.ndarray, *, compression: i
     if ext == ".png":
         if img.dtype not in (np.uint8, np.uint16):
             raise InputError(f"{p}: PNG holds 8 or 16-bit integers, not {img.dtype}")
+        if description is not None:
+            raise InputError(f"{p}: a description is written to TIFFs only")
         arr = img if img.ndim == 2 else img[..., ::-1]
         ok, buf = cv2.imencode(
             ".png", np.ascontiguousarray(arr), [cv2.IMWRITE_PNG_COMPRESSION, compression]
         )
         if not ok:
             raise OSError(f"{p}: could not encode PNG")
-        p.write_bytes(buf.tobytes())
+        data = buf.tobytes()
+        if srgb:
+            data = _png_with_srgb(data)
+        p.write_bytes(data)
     else:
         import tifffile
 
+        if srgb:
+            raise InputError(f"{p}: TIFFs hold linear values; srgb is for PNG previews")
+        text = None if description is None else json.dumps(dict(description), allow_nan=False)
         tifffile.imwrite(
-            p, img, photometric="rgb" if img.ndim == 3 and img.shape[2] == 3 else "minisblack"
+            p,
+            img,
+            photometric="rgb" if img.ndim == 3 and img.shape[2] == 3 else "minisblack",
+            compression="zlib" if compression > 0 else None,
+            compressionargs={"level": compression} if compression > 0 else None,
+            description=text,
+            metadata=None,
         )
+
+
+def read_tiff_description(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """The JSON description :func:`write_image` stored in a TIFF (empty if none).
+
+    Examples
+    --------
+    >>> import numpy as np, tempfile, pathlib
+    >>> p = pathlib.Path(tempfile.mkdtemp()) / "z.tiff"
+    >>> write_image(p, np.ones((2, 3), np.float32), description={"quantity": "depth"})
+    >>> read_tiff_description(p)
+    {'quantity': 'depth'}
+    """
+    import tifffile
+
+    p = Path(path)
+    try:
+        with tifffile.TiffFile(p) as tif:
+            text = tif.pages.first.description
+    except Exception as exc:
+        raise InputError(f"{p}: not a readable TIFF ({exc})") from None
+    if not text:
+        return {}
+    try:
+        value = json.loads(text)
+    except ValueError:
+        return {}
+    return value if isinstance(value, dict) else {}
+
+
+def _png_chunk(kind: bytes, payload: bytes) -> bytes:
+    crc = zlib.crc32(kind + payload) & 0xFFFFFFFF
+    return struct.pack(">I", len(payload)) + kind + payload + struct.pack(">I", crc)
+
+
+def _png_with_srgb(data: bytes) -> bytes:
+    """A PNG with ``sRGB`` (rendering intent 0, perceptual) and ``gAMA`` (45455, the
+    PNG specification's value to accompany sRGB) chunks after IHDR."""
+    # Signature (8 bytes), then IHDR: length (4), type (4), 13 bytes of data, CRC (4).
+    end = 8 + 4 + 4 + 13 + 4
+    if data[12:16] != b"IHDR":
+        raise OSError("PNG encoder wrote no IHDR first")
+    extra = _png_chunk(b"sRGB", b"\x00") + _png_chunk(b"gAMA", struct.pack(">I", 45455))
+    return data[:end] + extra + data[end:]
+
+
+def write_image_atomic(path: str | os.PathLike[str], img: np.ndarray, **kw: Any) -> None:
+    """:func:`write_image` to a temporary name beside ``path``, then rename
+    (:func:`lfcam.io.atomic.atomic_output`)."""
+    p = Path(path)
+    if p.suffix.lower() not in WRITABLE_EXTENSIONS:
+        raise InputError(f"{p}: unsupported output type {p.suffix!r} (use .png, .tif or .tiff)")
+    with atomic_output(p) as tmp:
+        write_image(tmp, img, **kw)
 
 
 def demosaic(raw: np.ndarray, pattern: str, *, name: str = "raw") -> np.ndarray:
@@ -264,7 +360,9 @@ def demosaic(raw: np.ndarray, pattern: str, *, name: str = "raw") -> np.ndarray:
     return cv2.cvtColor(np.ascontiguousarray(raw), code)
 
 
-def read_raw(path: str | os.PathLike[str], bayer: str | None = None) -> np.ndarray:
+def read_raw(
+    path: str | os.PathLike[str], bayer: str | None = None, *, data: bytes | None = None
+) -> np.ndarray:
     """Read a raw capture: grey, RGB, or a Bayer mosaic demosaiced to RGB.
 
     Parameters
@@ -276,6 +374,8 @@ def read_raw(path: str | os.PathLike[str], bayer: str | None = None) -> np.ndarr
         The sensor's mosaic, for single-channel Bayer frames. A camera raw file is
         then read as its mosaic (which must be ``bayer``) and demosaiced here like any
         Bayer frame; without ``bayer`` LibRaw demosaics it.
+    data : bytes, optional
+        The file's bytes, already read (as :func:`read_image`).
 
     Returns
     -------
@@ -288,15 +388,15 @@ def read_raw(path: str | os.PathLike[str], bayer: str | None = None) -> np.ndarr
     >>> raw = lfcam.read_raw("capture.tiff", bayer="RGGB")  # doctest: +SKIP
     >>> raw = lfcam.read_raw("capture.dng")                 # doctest: +SKIP
     """
-    if bayer is not None and is_camera_raw(path) and Path(path).is_file():
-        mosaic, cfa = read_camera_raw(path, mosaic=True)
+    if bayer is not None and is_camera_raw(path) and (data is not None or Path(path).is_file()):
+        mosaic, cfa = read_camera_raw(path, mosaic=True, data=data)
         if cfa != bayer:
             raise InputError(
                 f"{path}: the file's colour filter mosaic is {cfa}, but the calibration"
                 f" says --bayer {bayer}"
             )
         return demosaic(mosaic, bayer, name=str(path))
-    img = read_image(path)
+    img = read_image(path, data=data)
     if bayer is not None:
         if img.ndim != 2:
             raise InputError(f"{path}: --bayer {bayer} given, but the image has 3 channels")

@@ -4,7 +4,8 @@ Every atomic write (:mod:`lfcam.io.atomic`) holds the lock of its destination wh
 temporary exists, and a batch holds a capture's lock from the "is it complete?" check
 to the rename. So a temporary whose destination nobody holds the lock of belongs to a
 run that died, and :func:`remove_stale` can delete it. The lock of ``DIR/NAME`` is the
-file ``DIR/.NAME.lock`` (``flock``), removed again on release.
+file ``DIR/.NAME.lfcam-lock`` (``flock``; a name no other program uses), removed again
+on release.
 
 On systems without ``fcntl`` (Windows) the locks are no-ops and nothing is swept.
 """
@@ -33,7 +34,7 @@ __all__ = ["LockBusy", "lock_path", "path_lock", "remove_stale"]
 #: part is 8 characters from ``[a-z0-9_]``): ``.NAME.tmp-XXXXXXXX[.ext]`` while a file
 #: or folder is written, ``.NAME.old-XXXXXXXX/`` while a replaced folder is set aside.
 _TEMP = re.compile(r"^\.(?P<name>.+)\.(?P<kind>tmp|old)-[a-z0-9_]{8}(?:\.[^./]*)?$")
-_LOCK = re.compile(r"^\.(?P<name>.+)\.lock$")
+_LOCK = re.compile(r"^\.(?P<name>.+)\.lfcam-lock$")
 
 # Locks this process holds, by (thread, lock file): a thread may take a lock it already
 # holds (the batch's lock, then the atomic writer's), other threads may not.
@@ -45,9 +46,9 @@ class LockBusy(LfcamError):
 
 
 def lock_path(path: str | os.PathLike[str]) -> Path:
-    """The lock file of ``path``: ``.NAME.lock`` beside it."""
+    """The lock file of ``path``: ``.NAME.lfcam-lock`` beside it."""
     p = Path(path)
-    return p.parent / f".{p.name}.lock"
+    return p.parent / f".{p.name}.lfcam-lock"
 
 
 def _same_file(fd: int, path: Path) -> bool:
@@ -120,7 +121,7 @@ def remove_stale(folder: str | os.PathLike[str], name: str | None = None) -> lis
     """Remove the temporaries that killed lfcam runs left in ``folder`` (not below it).
 
     Only lfcam's own names are touched (``.NAME.tmp-XXXXXXXX``, ``.NAME.old-XXXXXXXX``,
-    ``.NAME.lock``), and each only while holding ``NAME``'s lock, taken without waiting:
+    ``.NAME.lfcam-lock``), and each only while holding ``NAME``'s lock, taken without waiting:
     what a live run holds is left alone. A folder set aside by an ``--overwrite`` that
     died before its replacement was renamed in is put back under ``NAME``.
 

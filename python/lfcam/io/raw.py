@@ -11,14 +11,16 @@ from __future__ import annotations
 import io
 import math
 import os
+import warnings
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ..errors import InputError
-from .files import MAX_IMAGE_FILE_BYTES, read_file_bytes
+from ..errors import InputError, LfcamWarning
+from .atomic import atomic_output
+from .files import MAX_IMAGE_FILE_BYTES, check_image_size, read_file_bytes
 
 __all__ = [
     "RAW_EXTENSIONS",
@@ -71,14 +73,25 @@ def _rawpy(path: Path) -> Any:
     return rawpy
 
 
-def _open(path: Path) -> Any:
+def _open(path: Path, data: bytes | None) -> Any:
     rawpy = _rawpy(path)
     # LibRaw decodes the bytes read by Python: any byte in the name works.
-    data = read_file_bytes(path, MAX_IMAGE_FILE_BYTES)
+    if data is None:
+        data = read_file_bytes(path, MAX_IMAGE_FILE_BYTES)
     try:
-        return rawpy.imread(io.BytesIO(data))
+        raw = rawpy.imread(io.BytesIO(data))
     except (rawpy.LibRawError, OSError, ValueError) as exc:
         raise InputError(f"{path}: not a readable camera raw file ({exc})") from None
+    try:
+        # The sensor's size and the visible area's, as the header declares them,
+        # before LibRaw unpacks or demosaics anything.
+        sizes = raw.sizes
+        check_image_size(int(sizes.raw_width), int(sizes.raw_height), 1, str(path))
+        check_image_size(int(sizes.width), int(sizes.height), 3, str(path))
+    except BaseException:
+        raw.close()
+        raise
+    return raw
 
 
 def _cfa_name(raw: Any, path: Path) -> str:
@@ -94,7 +107,7 @@ def _cfa_name(raw: Any, path: Path) -> str:
 
 
 def read_camera_raw(
-    path: str | os.PathLike[str], *, mosaic: bool = False
+    path: str | os.PathLike[str], *, mosaic: bool = False, data: bytes | None = None
 ) -> tuple[np.ndarray, str | None]:
     """Read a camera raw file as linear values.
 
@@ -105,6 +118,8 @@ def read_camera_raw(
     mosaic : bool
         Keep the sensor's colour filter array mosaic ``(H, W)`` (the visible area)
         instead of demosaicing it (LibRaw's AHD) to ``(H, W, 3)`` RGB.
+    data : bytes, optional
+        The file's bytes, already read: decoded instead of reading ``path``.
 
     Returns
     -------
@@ -118,12 +133,14 @@ def read_camera_raw(
     ------
     lfcam.InputError
         rawpy is not installed (the message says ``pip install "lfcam[raw]"``), the
-        file is missing or not a raw file LibRaw decodes, or (``mosaic=True``) the
-        sensor is not a 2 x 2 Bayer mosaic.
+        file is missing or not a raw file LibRaw decodes, its sensor or visible area
+        is larger than :data:`~lfcam.io.files.MAX_IMAGE_SIDE` /
+        :data:`~lfcam.io.files.MAX_IMAGE_PIXELS`, or (``mosaic=True``) the sensor is
+        not a 2 x 2 Bayer mosaic.
     """
     p = Path(path)
     rawpy = _rawpy(p)
-    with _open(p) as raw:
+    with _open(p, data) as raw:
         try:
             white = float(raw.white_level)
             if mosaic:
@@ -198,13 +215,23 @@ def _text(tags: dict[str, Any], name: str) -> str | None:
     return s or None
 
 
-def read_metadata(path: str | os.PathLike[str]) -> CaptureMetadata:
+def read_metadata(path: str | os.PathLike[str], *, data: bytes | None = None) -> CaptureMetadata:
     """A capture's EXIF metadata: focal length, exposure, ISO, aperture, camera.
 
     Read with exifread (the extra ``lfcam[raw]``), for camera raw files, TIFF and
     JPEG (tags in the EXIF directory or, as TIFF/EP and DNG allow, in the first
     image directory). PNG files carry none, and neither do TIFF and JPEG files
-    without the extra installed: every field is then None.
+    without the extra installed: every field is then None. Metadata that cannot be
+    parsed is an :class:`~lfcam.LfcamWarning` naming the file, and every field None:
+    the pixels may still be fine.
+
+    Parameters
+    ----------
+    path : path-like
+        The capture.
+    data : bytes, optional
+        Its bytes, already read (the ones its pixels were decoded from): parsed
+        instead of reading ``path`` again.
 
     Raises
     ------
@@ -213,7 +240,7 @@ def read_metadata(path: str | os.PathLike[str]) -> CaptureMetadata:
         installed (the message says ``pip install "lfcam[raw]"``).
     """
     p = Path(path)
-    if not p.is_file():
+    if data is None and not p.is_file():
         raise InputError(f"{p}: no such file")
     if p.suffix.lower() not in (*RAW_EXTENSIONS, ".tif", ".tiff", ".jpg", ".jpeg"):
         return CaptureMetadata()
@@ -225,11 +252,17 @@ def read_metadata(path: str | os.PathLike[str]) -> CaptureMetadata:
         raise InputError(
             f"{p}: reading a capture's metadata needs exifread: {_EXTRA_HINT}"
         ) from None
+    if data is None:
+        data = read_file_bytes(p, MAX_IMAGE_FILE_BYTES)
     try:
-        with p.open("rb") as fh:
-            tags = exifread.process_file(fh, details=False)
+        tags = exifread.process_file(io.BytesIO(data), details=False)
     except Exception as exc:  # exifread raises many kinds on damaged files
-        raise InputError(f"{p}: unreadable EXIF metadata ({exc})") from None
+        warnings.warn(
+            f"{p}: unreadable EXIF metadata ({type(exc).__name__}: {exc}); recorded as unknown",
+            LfcamWarning,
+            stacklevel=2,
+        )
+        return CaptureMetadata()
     return CaptureMetadata(
         focal_length_mm=_number(tags, "EXIF FocalLength", "Image FocalLength"),
         exposure_s=_number(tags, "EXIF ExposureTime", "Image ExposureTime"),
@@ -240,7 +273,13 @@ def read_metadata(path: str | os.PathLike[str]) -> CaptureMetadata:
     )
 
 
-def _rational(x: float, den: int = 10000) -> tuple[int, int]:
+def _rational(name: str, x: float, den: int, unit: str) -> tuple[int, int]:
+    """``x`` as the TIFF RATIONAL ``(num, den)`` (32-bit unsigned parts), or an
+    :class:`~lfcam.InputError` naming the metadata field."""
+    lo, hi = 1 / den, 0xFFFFFFFF / den
+    ok = isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+    if not (ok and 1 <= round(x * den) <= 0xFFFFFFFF):
+        raise InputError(f"metadata.{name}: expected {lo:g} to {hi:g}{unit}, got {x!r}")
     return round(x * den), den
 
 
@@ -268,6 +307,14 @@ def write_dng(
     metadata : CaptureMetadata, optional
         Written as the TIFF/EP EXIF tags of the image directory (focal length,
         exposure time, ISO, f-number) and Make / Model.
+
+    Raises
+    ------
+    lfcam.InputError
+        If the mosaic, ``cfa`` or the levels are malformed, or a metadata field does
+        not fit its tag (ISO 1 to 65535, the others positive and within a 32-bit
+        rational), naming it. The file is written atomically
+        (:func:`lfcam.io.atomic.atomic_output`): on any error nothing is left.
     """
     import tifffile
 
@@ -302,19 +349,31 @@ def write_dng(
         (50728, "2I", 3, (1, 1, 1, 1, 1, 1), True),  # AsShotNeutral
     ]
     if meta.exposure_s is not None:
-        tags.append((33434, "2I", 1, _rational(meta.exposure_s, 1_000_000), True))
+        tags.append(
+            (33434, "2I", 1, _rational("exposure_s", meta.exposure_s, 1_000_000, " s"), True)
+        )
     if meta.f_number is not None:
-        tags.append((33437, "2I", 1, _rational(meta.f_number, 100), True))
+        tags.append((33437, "2I", 1, _rational("f_number", meta.f_number, 100, ""), True))
     if meta.iso is not None:
-        tags.append((34855, "H", 1, (round(meta.iso),), True))
+        iso = meta.iso
+        if not (
+            isinstance(iso, (int, float))
+            and not isinstance(iso, bool)
+            and math.isfinite(iso)
+            and 1 <= round(iso) <= 65535
+        ):
+            raise InputError(f"metadata.iso: expected 1 to 65535, got {iso!r}")
+        tags.append((34855, "H", 1, (round(iso),), True))
     if meta.focal_length_mm is not None:
-        tags.append((37386, "2I", 1, _rational(meta.focal_length_mm, 1000), True))
-    tifffile.imwrite(
-        p,
-        np.ascontiguousarray(arr.astype(np.uint16, copy=False)),
-        photometric=32803,  # CFA
-        subfiletype=0,
-        software="lfcam",
-        extratags=tags,
-        metadata=None,
-    )
+        focal = _rational("focal_length_mm", meta.focal_length_mm, 1000, " mm")
+        tags.append((37386, "2I", 1, focal, True))
+    with atomic_output(p) as tmp:
+        tifffile.imwrite(
+            tmp,
+            np.ascontiguousarray(arr.astype(np.uint16, copy=False)),
+            photometric=32803,  # CFA
+            subfiletype=0,
+            software="lfcam",
+            extratags=tags,
+            metadata=None,
+        )

@@ -17,11 +17,13 @@ from typing import Any
 import cv2
 import numpy as np
 
+from .._validate import check_instance
 from ..calibration import Calibration
 from ..errors import InputError
 from ..kernels.flow import FlowParams, dis_flow, prepare
 from ..kernels.warp import identity_grid, remap_bilinear
 from .fill import FILL_MAX_RESIDUAL, FILL_MIN_USED, fill_parallax, guide_image, unsure
+from .refine import RefineParams, refine_parallax
 from .triangulate import MAX_VIEWS, TriangulationParams, TriangulationResult, triangulate
 
 __all__ = [
@@ -34,6 +36,10 @@ __all__ = [
     "estimate_depth",
     "near_views",
 ]
+
+#: Smallest view width or height depth accepts, px (OpenCV's DIS optical flow refuses
+#: images under 12 px a side).
+MIN_VIEW_SIDE = 16
 
 #: DIS parameters for depth: fine patches, a dense stride and four variational
 #: refinement iterations (docs/tuning.md, "Depth").
@@ -89,6 +95,9 @@ class DepthParams:
     #: second triangulation over the near views (``|o_i| <= max |o_j| / 2``) where that
     #: one is sure, when there are at least this many near views besides the reference.
     near_views_min: int = 24
+    #: Refine the parallax by a plane sweep along the parallax lines over all views
+    #: (:mod:`lfcam.processing.refine`); None: off.
+    refine: RefineParams | None = None
 
     def __post_init__(self) -> None:
         positive = ("flow_max_pixels", "flow_margin", "flow_sigma", "fb_threshold")
@@ -102,6 +111,10 @@ class DepthParams:
             raise InputError(f"params.fill_min_used: expected 0 .. 1, got {self.fill_min_used!r}")
         if self.flow is not None and not isinstance(self.flow, FlowParams):
             raise InputError(f"params.flow: expected a FlowParams, got {type(self.flow).__name__}")
+        if self.refine is not None and not isinstance(self.refine, RefineParams):
+            raise InputError(
+                f"params.refine: expected a RefineParams or None, got {type(self.refine).__name__}"
+            )
 
     def flow_for(self, n_pixels: int) -> FlowParams:
         """The flow's parameters for a window of ``n_pixels``: ``flow`` if given, else
@@ -137,6 +150,9 @@ class DepthResult:
     filled : (H, W) bool or None
         Pixels whose parallax comes from :func:`fill_parallax` (unconfident
         triangulations, occlusion bands), not from their own triangulation.
+    swept : (H, W) bool or None
+        With :attr:`DepthParams.refine`: pixels whose parallax comes from the plane
+        sweep (there ``confidence`` is the sweep's).
     timings : dict
         Seconds per stage.
     """
@@ -149,6 +165,7 @@ class DepthResult:
     depth: np.ndarray | None = None
     relative: np.ndarray | None = None
     filled: np.ndarray | None = None
+    swept: np.ndarray | None = None
     timings: dict[str, float] = field(default_factory=dict)
 
 
@@ -417,6 +434,15 @@ def depth_from_views(
     views = np.asarray(views)
     if views.ndim not in (3, 4) or views.shape[0] < 2:
         raise InputError(f"views: expected (N, H, W[, C]) with N >= 2, got shape {views.shape}")
+    if views.dtype.kind not in "fiu":
+        raise InputError(f"views: expected real numbers, got dtype {views.dtype}")
+    if min(views.shape[1:3]) < MIN_VIEW_SIDE:
+        raise InputError(
+            f"views: each view is {views.shape[2]} x {views.shape[1]} px; optical flow needs "
+            f"at least {MIN_VIEW_SIDE} px a side"
+        )
+    if isinstance(reference, (bool, np.bool_)) or not isinstance(reference, (int, np.integer)):
+        raise InputError(f"reference: expected a view index (an integer), got {reference!r}")
     if views.dtype != np.float32:
         views = views.astype(np.float32)
     offsets = np.asarray(offsets, np.float64)
@@ -477,6 +503,15 @@ def depth_from_views(
             sigma_colour=p.fill_sigma_colour,
         )
         timings["fill"] = time.perf_counter() - t2
+    swept = None
+    if p.refine is not None:
+        t3 = time.perf_counter()
+        ref = refine_parallax(
+            views[(slice(None), *win)], offsets, int(reference), parallax, p.refine
+        )
+        parallax, swept = ref.parallax, ref.swept
+        confidence = np.where(swept, ref.confidence, confidence).astype(np.float32)
+        timings["refine"] = time.perf_counter() - t3
     shape = views.shape[1:3]
     return DepthResult(
         parallax=_paste(parallax, win, shape, np.nan),
@@ -485,6 +520,7 @@ def depth_from_views(
         perpendicular=_paste(out["perpendicular"], win, shape, np.nan),
         n_used=_paste(out["n_used"], win, shape, 0),
         filled=None if filled is None else _paste(filled, win, shape, False),
+        swept=None if swept is None else _paste(swept, win, shape, False),
         timings=timings,
     )
 
@@ -550,6 +586,8 @@ def estimate_depth(
         With ``depth`` in metres (metric calibrations) or ``relative``
         (``t = s Z_c / Z_b``, triangulated against ``d_i``) otherwise.
     """
+    check_instance(cal, Calibration, "cal")
+    views = np.asarray(views)
     if views.shape[0] != cal.n_views or tuple(views.shape[1:3]) != tuple(cal.rect_shape):
         raise InputError(
             f"views: shape {views.shape} does not match the calibration"

@@ -11,6 +11,7 @@ import weakref
 
 import numpy as np
 
+from .._validate import as_image, check_instance
 from ..calibration import Calibration
 from ..errors import InputError
 from ..io import demosaic
@@ -53,7 +54,8 @@ def rectify(raw: np.ndarray, cal: Calibration, *, interp: str = "bilinear") -> n
     ``cal.crops``, ``cal.warps`` or ``cal.masks`` prepares a new plan; changing their
     values in place does not: assign new arrays instead.
     """
-    raw = np.asarray(raw)
+    check_instance(cal, Calibration, "cal")
+    raw = as_image(raw, "raw", dtypes=(np.uint8, np.uint16, np.float32))
     if raw.ndim == 2 and cal.bayer is not None:
         raw = demosaic(raw, cal.bayer)
     if tuple(raw.shape[:2]) != tuple(cal.raw_shape):

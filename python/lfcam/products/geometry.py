@@ -42,6 +42,12 @@ __all__ = [
     "require_metric",
 ]
 
+#: Largest ``|translation|`` component of a novel-view pose, metres, and largest
+#: rotation-vector component, degrees: beyond them a pose is a mistake (and its
+#: arithmetic overflows).
+MAX_POSE_TRANSLATION_M = 1e4
+MAX_POSE_ROTATION_DEG = 1e4
+
 
 def points_from_depth(depth: np.ndarray, cal: Calibration) -> tuple[np.ndarray, np.ndarray, str]:
     """3-D points (metres, front-lens frame: X right, Y down, Z forward) of finite depths.
@@ -258,5 +264,12 @@ def parse_pose(text: str) -> np.ndarray:
         raise InputError(f"pose: expected TX,TY,TZ[,RX,RY,RZ] numbers, got {text!r}") from None
     if len(vals) not in (3, 6):
         raise InputError(f"pose: expected 3 or 6 comma-separated numbers, got {len(vals)}")
+    limits = [MAX_POSE_TRANSLATION_M] * 3 + [MAX_POSE_ROTATION_DEG] * 3
+    for v, limit in zip(vals, limits):
+        if not (math.isfinite(v) and abs(v) <= limit):
+            raise InputError(
+                f"pose: translation within +-{MAX_POSE_TRANSLATION_M:g} m and rotation within "
+                f"+-{MAX_POSE_ROTATION_DEG:g} degrees expected, got {v!r} in {text!r}"
+            )
     r = np.radians(vals[3:]) if len(vals) == 6 else np.zeros(3)
     return pose_matrix((r, np.array(vals[:3])))

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .._validate import check_instance
 from ..calibration import Calibration
 from ..errors import InputError
 from ..io import rgb_u8, write_ply
@@ -94,6 +95,7 @@ def mesh_from_depth(
     >>> res = lfcam.process_capture("capture.png", cal)  # doctest: +SKIP
     >>> mesh = mesh_from_depth(res.depth.depth, cal, res.views[cal.reference])  # doctest: +SKIP
     """
+    check_instance(cal, Calibration, "cal")
     depth = np.asarray(depth)
     if depth.ndim != 2 or depth.size == 0:
         raise InputError(f"depth: expected a non-empty (H, W) array, got shape {depth.shape}")

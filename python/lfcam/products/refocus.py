@@ -12,6 +12,7 @@ from numpy.typing import ArrayLike, NDArray
 
 import lfcam._lfcam as _lfcam
 
+from .._validate import check_instance
 from ..calibration import Calibration
 from ..errors import InputError
 from ..kernels.warp import identity_grid
@@ -20,9 +21,9 @@ from .superres import (
     SuperResParams,
     fill_holes,
     inverse_maps,
-    parallax_map,
     place_raw_samples,
     raw_samples,
+    resolve_parallax,
     shift_and_add,
 )
 
@@ -149,6 +150,7 @@ def refocus(
     --------
     >>> img = lfcam.refocus(raw, cal, 0.8)  # doctest: +SKIP
     """
+    check_instance(cal, Calibration, "cal")
     if (depth_m is None) == (parallax is None):
         raise InputError("depth_m: give exactly one of depth_m and parallax")
     if depth_m is not None:
@@ -177,8 +179,10 @@ def refocus(
 def all_in_focus(
     frames: ArrayLike,
     cal: Calibration,
-    depth: DepthResult | ArrayLike,
+    depth: DepthResult | None = None,
     *,
+    parallax: ArrayLike | None = None,
+    depth_m: ArrayLike | None = None,
     sigma: float = 0.35,
 ) -> NDArray[np.float32]:
     """All-in-focus image: every sample goes to the reference point it shows
@@ -193,8 +197,12 @@ def all_in_focus(
         As in :func:`refocus`.
     cal : Calibration
         The camera.
-    depth : DepthResult or (H_rect, W_rect) array
-        Depth result or parallax ``s``.
+    depth : DepthResult, optional
+        The capture's depth result. Or, by keyword, exactly one of ``parallax``
+        (``s`` per rectified pixel) and ``depth_m`` (metres); an array passed as
+        ``depth`` is refused, never guessed.
+    parallax, depth_m : (H_rect, W_rect) array, optional
+        See ``depth``.
     sigma : float
         Splat kernel, px.
 
@@ -202,7 +210,8 @@ def all_in_focus(
     -------
     (H_rect, W_rect, C) float32
     """
-    s = parallax_map(depth, cal)
+    check_instance(cal, Calibration, "cal")
+    s = resolve_parallax(cal, depth, parallax=parallax, depth_m=depth_m)
     H, W = (int(x) for x in cal.rect_shape)
     robust = SuperResParams.robust_iterations
     if _is_raw(frames, cal):

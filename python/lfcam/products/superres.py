@@ -24,6 +24,7 @@ from numpy.typing import ArrayLike, NDArray
 
 import lfcam._lfcam as _lfcam
 
+from .._validate import as_int_array, check_instance
 from ..calibration import Calibration
 from ..errors import InputError
 from ..io import demosaic
@@ -94,6 +95,48 @@ class SuperResParams:
     window: int = 1
     step: float = 0.02
     eps: float = 0.01
+
+    def __post_init__(self) -> None:
+        for name, lo, hi in _INT_RANGES:
+            value = getattr(self, name)
+            if (
+                isinstance(value, (bool, np.bool_))
+                or not isinstance(value, (int, np.integer))
+                or not lo <= value <= hi
+            ):
+                raise InputError(f"{name}: expected an integer from {lo} to {hi}, got {value!r}")
+        for name, positive in _FLOATS:
+            value = getattr(self, name)
+            ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
+                value, (bool, np.bool_)
+            )
+            if not (ok and math.isfinite(value) and (value > 0 if positive else value >= 0)):
+                what = "> 0" if positive else ">= 0"
+                raise InputError(f"{name}: expected a finite number {what}, got {value!r}")
+        if self.alpha > 1:
+            raise InputError(f"alpha: expected a number in (0, 1], got {self.alpha!r}")
+
+
+# (name, smallest, largest) of SuperResParams' integers: the largest bound the work.
+_INT_RANGES = (
+    ("kernel_radius", 0, 16),
+    ("robust_iterations", 0, 100),
+    ("place_iterations", 0, 100),
+    ("deblur_iterations", 0, 1000),
+    ("window", 1, 16),
+)
+# (name, must be > 0) of SuperResParams' floats; the others must be >= 0.
+_FLOATS = (
+    ("kernel_sigma", True),
+    ("huber", True),
+    ("reject", True),
+    ("place_tolerance", True),
+    ("psf_sigma", False),
+    ("lam", False),
+    ("alpha", True),
+    ("step", True),
+    ("eps", True),
+)
 
 
 # Inverse maps depend on the calibration only: computed once per Calibration object.
@@ -167,8 +210,15 @@ def raw_samples(raw: ArrayLike, cal: Calibration) -> NDArray[np.float32]:
             f"raw: frame is {arr.shape[1]}x{arr.shape[0]}, the calibration expects"
             f" {cal.raw_shape[1]}x{cal.raw_shape[0]}"
         )
+    if arr.ndim not in (2, 3):
+        raise InputError(f"raw: expected (H, W) or (H, W, C), got shape {arr.shape}")
     if arr.ndim == 2:
         arr = arr[..., None]
+    if arr.shape[2] == 1 and cal.gains.shape[2] != 1:
+        raise InputError(
+            f"raw: one channel, but the calibration is of a {cal.gains.shape[2]}-channel "
+            "camera (a Bayer frame needs cal.bayer)"
+        )
     factors = _sample_factors(cal, arr.dtype)
     with np.errstate(invalid="ignore"):
         # One pass: arr converted to float32 times (gains * scale), NaN where gains = 0.
@@ -199,14 +249,72 @@ def _sample_factors(cal: Calibration, dtype: np.dtype) -> NDArray[np.float32]:
     return factors
 
 
-def parallax_map(depth: DepthResult | ArrayLike, cal: Calibration) -> NDArray[np.float32]:
+def parallax_map(
+    depth: DepthResult | ArrayLike, cal: Calibration, name: str = "depth"
+) -> NDArray[np.float32]:
+    """The parallax ``s`` of a :class:`DepthResult` or of an ``s`` array, checked
+    against the rectified frame (low-level: :func:`resolve_parallax` is the public way)."""
     s = depth.parallax if isinstance(depth, DepthResult) else np.asarray(depth)
+    if s.dtype.kind not in "fiu":
+        raise InputError(f"{name}: expected real numbers, got dtype {s.dtype}")
     if s.shape != tuple(cal.rect_shape):
         raise InputError(
-            f"depth: parallax of shape {s.shape} does not match the rectified frame"
+            f"{name}: parallax of shape {s.shape} does not match the rectified frame"
             f" {tuple(cal.rect_shape)}"
         )
     return np.ascontiguousarray(s, np.float32)
+
+
+def resolve_parallax(
+    cal: Calibration,
+    depth: DepthResult | None = None,
+    *,
+    parallax: ArrayLike | None = None,
+    depth_m: ArrayLike | None = None,
+) -> NDArray[np.float32]:
+    """The parallax ``s`` map from exactly one of a depth result, ``parallax=`` or
+    ``depth_m=``; an array passed as ``depth`` is refused rather than guessed.
+
+    ``depth_m`` (metres, metric calibrations) is converted by inverting
+    ``Z = Z_c + (Z_b - Z_c) / (1 - s)``: ``s = 1 - (Z_b - Z_c) / (Z - Z_c)`` (NaN for
+    ``Z <= Z_c`` or unknown ``Z``).
+
+    Examples
+    --------
+    The depth at the reference distance ``Z_b`` has parallax 0:
+
+    >>> from types import SimpleNamespace
+    >>> cal = SimpleNamespace(rect_shape=(1, 2), metric=True, z_b=1.0, z_c=0.05)
+    >>> resolve_parallax(cal, depth_m=[[1.0, 0.525]])
+    array([[ 0., -1.]], dtype=float32)
+    """
+    given = [
+        k
+        for k, v in (("depth", depth), ("parallax", parallax), ("depth_m", depth_m))
+        if v is not None
+    ]
+    if len(given) != 1:
+        raise InputError(
+            "depth: give exactly one of a depth result (lfcam.DepthResult, positional),"
+            f" parallax= (s) or depth_m= (metres); got {', '.join(given) or 'none'}"
+        )
+    if depth is not None:
+        if not isinstance(depth, DepthResult):
+            raise InputError(
+                f"depth: expected a DepthResult (from lfcam.estimate_depth or"
+                f" process_capture(...).depth), got {type(depth).__name__}; pass a map"
+                " by keyword: parallax=s, or depth_m=Z in metres"
+            )
+        return parallax_map(depth, cal)
+    if parallax is not None:
+        return parallax_map(parallax, cal, "parallax")
+    if not cal.metric:
+        raise InputError("depth_m: the calibration is relative (no Z_c): pass parallax= instead")
+    z = np.asarray(depth_m, np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = 1.0 - (cal.z_b - cal.z_c) / (z - cal.z_c)
+    s = np.where(z > cal.z_c, s, np.nan)
+    return parallax_map(s, cal, "depth_m")
 
 
 def place_raw_samples(
@@ -466,9 +574,11 @@ def _hole_tiles(
 def super_resolve(
     raw: ArrayLike,
     cal: Calibration,
-    depth: DepthResult | ArrayLike,
+    depth: DepthResult | None = None,
     factor: int = 2,
     *,
+    parallax: ArrayLike | None = None,
+    depth_m: ArrayLike | None = None,
     params: SuperResParams | None = None,
     views: ArrayLike | None = None,
 ) -> NDArray[np.float32]:
@@ -480,10 +590,15 @@ def super_resolve(
         The capture (uint8, uint16 or float32; Bayer frames are demosaiced).
     cal : Calibration
         The camera.
-    depth : DepthResult or (H_rect, W_rect) array
-        The capture's depth (:func:`lfcam.estimate_depth`) or its parallax ``s``.
+    depth : DepthResult, optional
+        The capture's depth (:func:`lfcam.estimate_depth`). Or, by keyword, exactly
+        one of ``parallax`` and ``depth_m``; an array passed here is refused.
     factor : int
         ``r``, 1 to 4.
+    parallax : (H_rect, W_rect) array, optional
+        The parallax ``s`` per rectified pixel.
+    depth_m : (H_rect, W_rect) array, optional
+        Depth in metres (metric calibrations), converted to ``s``.
     params : SuperResParams, optional
         Tuning (defaults: :class:`SuperResParams`).
     views : sequence of int, optional
@@ -499,30 +614,41 @@ def super_resolve(
     ------
     InputError
         Naming the argument: wrong factor, raw of another size, parallax of another
-        shape, view indices out of range.
+        shape, an array as ``depth`` or not exactly one of ``depth``, ``parallax``,
+        ``depth_m``, view indices out of range.
 
     Examples
     --------
     >>> res = lfcam.process_capture("capture.png", cal)       # doctest: +SKIP
     >>> sr = lfcam.super_resolve(raw, cal, res.depth, factor=2)  # doctest: +SKIP
+    >>> sr = lfcam.super_resolve(raw, cal, depth_m=z, factor=2)  # doctest: +SKIP
     """
+    check_instance(cal, Calibration, "cal")
     p = params or SuperResParams()
-    if not isinstance(factor, (int, np.integer)) or not (1 <= int(factor) <= 4):
+    check_instance(p, SuperResParams, "params")
+    if (
+        isinstance(factor, (bool, np.bool_))
+        or not isinstance(factor, (int, np.integer))
+        or not (1 <= int(factor) <= 4)
+    ):
         raise InputError(f"factor: expected an integer from 1 to 4, got {factor!r}")
     r = int(factor)
+    H, W = (int(x) for x in cal.rect_shape)
+    s = resolve_parallax(cal, depth, parallax=parallax, depth_m=depth_m)
     values = raw_samples(raw, cal)
     positions = place_raw_samples(
-        cal, depth, iterations=p.place_iterations, tolerance=p.place_tolerance
+        cal, s, iterations=p.place_iterations, tolerance=p.place_tolerance
     )
     weights = None
     if views is not None:
-        sel = np.asarray(views, np.int64).ravel()
+        sel = as_int_array(np.asarray(views).ravel(), "views", shape=(None,))
+        if sel.size == 0:
+            raise InputError("views: no view given (None uses all)")
         bad = sel[(sel < 0) | (sel >= cal.n_views)]
         if bad.size:
             raise InputError(f"views: index {int(bad[0])} is out of range for {cal.n_views} views")
         _, view = inverse_maps(cal)
         weights = np.isin(view, sel).astype(np.float32)
-    H, W = (int(x) for x in cal.rect_shape)
     # The fused image sum / wsum (0 where wsum < 1e-3: the holes) straight from the
     # core, as fill_holes(sum / wsum, wsum) would prepare it, without passes over it.
     z, wsum, have = _lfcam.shift_and_add_mean(

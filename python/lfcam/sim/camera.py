@@ -57,6 +57,28 @@ SCENES = ("planes", "spheres", "layered", "board")
 # --------------------------------------------------------------------------
 # Configuration
 # --------------------------------------------------------------------------
+def _is_real(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _has_type(value: Any, annotation: str) -> bool:
+    """Whether a config value matches its field's annotation (the few forms SimConfig uses)."""
+    if annotation.endswith(" | None"):
+        return value is None or _has_type(value, annotation[: -len(" | None")])
+    if annotation == "int":
+        return isinstance(value, int) and not isinstance(value, bool)
+    if annotation == "float":
+        return _is_real(value)
+    if annotation == "str":
+        return isinstance(value, str)
+    if annotation.startswith("tuple[") and isinstance(value, tuple):
+        inner = [t.strip() for t in annotation[6:-1].split(",")]
+        if inner[-1] == "...":
+            return all(_has_type(v, inner[0]) for v in value)
+        return len(value) == len(inner) and all(_has_type(v, t) for v, t in zip(value, inner))
+    return False
+
+
 @dataclass(frozen=True)
 class SimConfig:
     """Parameters of a simulated camera and of what it captures.
@@ -157,6 +179,11 @@ class SimConfig:
     def __post_init__(self) -> None:
         def bad(name: str, why: str) -> InputError:
             return InputError(f"simulator config {name!r}: {why}")
+
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if not _has_type(value, str(f.type)):
+                raise bad(f.name, f"expected {f.type}, got {value!r}")
 
         r, c = self.grid
         if not (isinstance(r, int) and isinstance(c, int) and 1 <= r <= 16 and 1 <= c <= 16):
@@ -272,7 +299,7 @@ class SimConfig:
             kw[k] = v
         try:
             return cls(**kw)
-        except TypeError as exc:
+        except (TypeError, InputError) as exc:
             raise InputError(f"{source}: {exc}") from None
 
     def to_dict(self) -> dict[str, Any]:

@@ -25,6 +25,7 @@ import configparser
 import math
 import os
 import re
+from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -228,6 +229,35 @@ def _select(spec: slice | int | Sequence[int], present: Sequence[int], name: str
     return picked
 
 
+def _row_col_names(folder: Path, files: list[Path]) -> dict[Path, tuple[int, int]]:
+    """(row, col) of the images whose names hold them: the last two integers of the
+    name. Names with exactly two integers (``03_04.png``, ``view_3_4.png``) are taken
+    first; otherwise the names may share leading integers (a capture number, as in
+    Lytro exports: ``2067_05_05.png``), which must then be the same in every name."""
+    ints = {
+        p: [int(t) for t in _INT.findall(p.stem)]
+        for p in files
+        if p.suffix.lower() in IMAGE_EXTENSIONS
+    }
+    two = {p: (v[0], v[1]) for p, v in ints.items() if len(v) == 2}
+    if two:
+        return two
+    longer = {p: v for p, v in ints.items() if len(v) > 2}
+    if not longer:
+        return {}
+    counts = Counter(len(v) for v in longer.values())
+    n = max(counts, key=lambda k: (counts[k], -k))
+    picked = {p: v for p, v in longer.items() if len(v) == n}
+    first = next(iter(picked))
+    for p, v in picked.items():
+        if v[:-2] != picked[first][:-2]:
+            raise InputError(
+                f"{folder}: view names hold more than a row and a column, and their leading"
+                f" numbers differ ({first.name}, {p.name}): put one capture per folder"
+            )
+    return {p: (v[-2], v[-1]) for p, v in picked.items()}
+
+
 def _find_views(folder: Path) -> tuple[str, dict[tuple[int, int], Path], RigParameters | None]:
     """(layout, {(row, col): file}, parameters) of a folder of views."""
     files = sorted(p for p in folder.iterdir() if p.is_file() and not p.name.startswith("."))
@@ -268,13 +298,7 @@ def _find_views(folder: Path) -> tuple[str, dict[tuple[int, int], Path], RigPara
                 )
             found[divmod(k, cols)] = p
         return "hci", found, params
-    for p in files:
-        if p.suffix.lower() not in IMAGE_EXTENSIONS:
-            continue
-        ints = _INT.findall(p.stem)
-        if len(ints) != 2:
-            continue
-        rc = (int(ints[0]), int(ints[1]))
+    for p, rc in _row_col_names(folder, files).items():
         if rc in found:
             raise InputError(
                 f"{folder}: two files for view (row {rc[0]}, col {rc[1]}):"
@@ -284,7 +308,7 @@ def _find_views(folder: Path) -> tuple[str, dict[tuple[int, int], Path], RigPara
     if not found:
         raise InputError(
             f"{folder}: no views found (expected HCI input_CamNNN.png, or images named by"
-            " row and column, such as 03_04.png or view_3_4.png)"
+            " row and column, such as 03_04.png, view_3_4.png or 2067_05_05.png)"
         )
     return "row_col", found, params
 
@@ -447,8 +471,10 @@ class LightField:
               ``parameters.cfg`` (grid, and baseline, focal length, sensor size and
               offset for metric depth) and an optional ``gt_disp_lowres.pfm``, the
               ground-truth disparity of the grid's centre view.
-            - **row_col**: image files (PNG, TIFF, JPEG) whose name holds exactly two
-              integers, row then column: ``03_04.png``, ``view_3_4.tif``. An optional
+            - **row_col**: image files (PNG, TIFF, JPEG) whose name holds two
+              integers, row then column: ``03_04.png``, ``view_3_4.tif``; or the
+              same after leading integers shared by every name (Lytro exports:
+              ``2067_05_05.png``, row and column are the last two). An optional
               ``parameters.cfg`` and ``gt_disp_lowres.pfm`` are read as for HCI.
         views : str or pair, optional
             The subset: ``"3:6,3:7"`` (rows 3-5, cols 3-6), Python slices of

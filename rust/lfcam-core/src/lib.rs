@@ -21,6 +21,7 @@ pub mod remap;
 pub mod simd;
 pub mod stats;
 pub mod superres;
+pub mod sweep;
 pub mod triangulate;
 
 pub use crate::crop::crop_lenslets;
@@ -31,4 +32,5 @@ pub use crate::raster::{ProjectedMesh, Target, rasterize};
 pub use crate::rectify::{Interp, ViewMaps, rectify};
 pub use crate::remap::remap_bilinear;
 pub use crate::stats::nan_median;
+pub use crate::sweep::{SweepParams, plane_sweep};
 pub use crate::triangulate::triangulate;

@@ -15,6 +15,7 @@ mod rectify;
 mod remap;
 mod stats;
 mod superres;
+mod sweep;
 mod threads;
 mod triangulate;
 
@@ -43,6 +44,8 @@ mod lfcam_ext {
     use crate::superres::{
         btv_deblur, data_weights, invert_maps, place_samples, shift_and_add, shift_and_add_mean,
     };
+    #[pymodule_export]
+    use crate::sweep::plane_sweep;
     #[pymodule_export]
     use crate::threads::{get_num_threads, set_num_threads};
     #[pymodule_export]
