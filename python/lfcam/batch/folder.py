@@ -240,7 +240,7 @@ def process_folder(
     else:
         cal_path = str(cal)
         sha256 = file_hash(cal_path)
-        calibration = Calibration.load(cal_path)
+        calibration = load_calibration(cal_path, sha256)
     opts.check(calibration)
     tasks = find_captures(inputs, out_dir)
     Path(out_dir).mkdir(parents=True, exist_ok=True)
