@@ -277,6 +277,9 @@ def test_options_checked_and_normalised(small, tmp_path, monkeypatch) -> None:
             lfcam.process_folder(one, cal, out, **{name: value})
         assert str(e.value).startswith(message), (name, value)
     assert not out.exists()
+    # Checked before the calibration is even loaded.
+    with pytest.raises(lfcam.InputError, match=r"^interp: expected one of"):
+        lfcam.process_folder(one, tmp_path / "missing.lfcal", out, interp="nearest")
     # A list of distances is stored as a tuple in the frozen options the workers get.
     from lfcam.batch import folder
 

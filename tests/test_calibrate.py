@@ -105,9 +105,12 @@ def test_save_load_and_report(reference_run, tmp_path, capsys) -> None:
     assert img.shape[1] >= 1200
     assert sorted(p.name for p in tmp_path.iterdir()) == [
         "camera.lfcal",
+        "camera.report.html",
         "camera.report.json",
         "camera.report.png",
     ]
+    page = paths["report_html"].read_text()
+    assert 'Verdict: <span class="v pass">pass</span>' in page
     assert main(["info", str(paths["calibration"])]) == 0
     out = capsys.readouterr().out
     assert "3 x 4" in out or "3x4" in out

@@ -265,7 +265,9 @@ def _add_calibrate(sub: Any) -> None:
             "board_<distance>m/* (one or more distances; three or more, or two plus the "
             "optical centres, give metric depth with no optics known), and an optional "
             "camera.toml (grid, reference, z_c, pattern_pitch, bayer), which the flags "
-            "override. Writes CAMERA.lfcal, CAMERA.report.json and CAMERA.report.png."
+            "override. Writes CAMERA.lfcal, CAMERA.report.json, CAMERA.report.png and "
+            "CAMERA.report.html (the report as a page: per view numbers, pass/warn/fail "
+            "verdicts against stated thresholds, o_i on the sensor layout, the parallax fit)."
         ),
     )
     p.add_argument("cal_dir", type=Path, metavar="CAL_DIR", help="the calibration folder")
@@ -833,7 +835,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
             f"  {name:10} {100 * med:10.2f} %  {100 * bad:12.2f} %  {100 * cov:8.1f} %  {sec:7.1f}"
         )
     print("  pictures:")
-    print(f"    calibration report  {paths['report_png']}")
+    print(f"    calibration report  {paths['report_html']}")
     for name, *_, folder in rows:
         print(f"    {name:19} {folder / 'depth.png'}")
     return EXIT_OK

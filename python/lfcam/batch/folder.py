@@ -229,6 +229,7 @@ def process_folder(
             f" (options: {', '.join(sorted(fields))})"
         ) from None
     opts = replace(opts, refocus=as_tuple(opts.refocus))  # a list is fine: stored as a tuple
+    opts.check_values()
     if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
         raise InputError(f"jobs: must be an integer >= 1, got {jobs!r}")
     if threads is not None and (not isinstance(threads, int) or threads < 1):

@@ -34,6 +34,7 @@ from .layout import find_layout
 from .parallax import fit_depth_model, invert_map, lattice_check, measure_parallax
 from .photometric import white_gains
 from .report import calibration_figure
+from .report_page import report_html
 
 __all__ = ["CalibrationParams", "CalibrationRun", "calibrate", "run_calibration"]
 
@@ -164,7 +165,9 @@ class CalibrationRun:
     residuals: list[np.ndarray]  # per view photometric residual in the rectified frame
 
     def save(self, path: str | os.PathLike[str]) -> dict[str, Path]:
-        """Write ``X.lfcal``, ``X.report.json`` and ``X.report.png``; each atomically.
+        """Write ``X.lfcal``, ``X.report.json``, ``X.report.png`` and ``X.report.html``
+        (the page a person reads: :func:`lfcam.calibration.report_page.report_html`);
+        each atomically.
 
         The ``.lfcal`` is written last, so its presence means a complete run.
         """
@@ -177,11 +180,15 @@ class CalibrationRun:
         paths = {
             "report_json": stem.with_name(stem.name + ".report.json"),
             "report_png": stem.with_name(stem.name + ".report.png"),
+            "report_html": stem.with_name(stem.name + ".report.html"),
             "calibration": out,
         }
         write_text_atomic(paths["report_json"], json.dumps(self.calibration.report, indent=2))
         fig = calibration_figure(self.calibration, self.white, self.residuals)
         write_image_atomic(paths["report_png"], fig)
+        write_text_atomic(
+            paths["report_html"], report_html(self.calibration, fig, title=f"{out.name}: report")
+        )
         self.calibration.save(out)
         return paths
 

@@ -123,7 +123,7 @@ _INT_RANGES = (
     ("robust_iterations", 0, 100),
     ("place_iterations", 0, 100),
     ("deblur_iterations", 0, 1000),
-    ("window", 1, 16),
+    ("window", 1, 8),
 )
 # (name, must be > 0) of SuperResParams' floats; the others must be >= 0.
 _FLOATS = (
