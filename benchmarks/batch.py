@@ -23,11 +23,10 @@ from __future__ import annotations
 
 import argparse
 import os
-import resource
 import shutil
 import statistics
-import sys
 import tempfile
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -37,6 +36,7 @@ import lfcam
 from lfcam.calibration.calibrate import run_calibration
 from lfcam.sim import SimConfig
 
+TARGET_MB = "target <= 2048 MB (full size)"
 SIZES = {
     "tiny": SimConfig(view_size=(200, 150), grid=(2, 3), captures_per_distance=2, seed=5),
     "small": SimConfig(captures_per_distance=2, seed=5),
@@ -56,15 +56,38 @@ def _prepare(size: str, n: int, root: Path) -> tuple[Path, Path]:
     return cal, inp
 
 
-def _peak_mb_self() -> float:
-    # Linux reports kilobytes, macOS bytes.
-    scale = 1 if sys.platform == "darwin" else 1024
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * scale / 2**20
+def _peak_mb(pid: int | str = "self") -> float:
+    """A process's peak resident memory, MB (VmHWM: of its own address space, unlike
+    ru_maxrss, which a spawned child inherits from the parent it was forked from)."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return float("nan")
 
 
-def _peak_mb_children() -> float:
-    scale = 1 if sys.platform == "darwin" else 1024
-    return resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * scale / 2**20
+class _ChildPeaks(threading.Thread):
+    """Samples the peak memory of this process's children while a batch runs."""
+
+    def __init__(self) -> None:
+        super().__init__(daemon=True)
+        self.peaks: dict[int, float] = {}
+        self.stop = threading.Event()
+
+    def run(self) -> None:
+        me = str(os.getpid())
+        while not self.stop.wait(0.2):
+            for d in Path("/proc").iterdir():
+                try:
+                    parent = (d / "stat").read_text().rsplit(")", 1)[1].split()[1]
+                    # The pool's workers, not multiprocessing's resource tracker.
+                    if parent == me and b"spawn_main" in (d / "cmdline").read_bytes():
+                        pid = int(d.name)
+                        self.peaks[pid] = max(self.peaks.get(pid, 0.0), _peak_mb(pid))
+                except (OSError, IndexError):
+                    continue
 
 
 def _timed(run: Callable[[Path], lfcam.BatchSummary], out: Path) -> tuple[float, Any]:
@@ -119,17 +142,22 @@ def main() -> None:
         local_over: list[float] = []
         for jobs in (1, 2):
             rates = []
+            watch = _ChildPeaks()
+            watch.start()
             for _ in range(args.repeats):
                 wall, s = _timed(lambda o, j=jobs: lfcam.process_folder(inp, cal, o, jobs=j), out)
                 rates.append(len(s.done) / wall)
                 if jobs == 1:
                     per_capture += [o.seconds for o in s.outcomes]
                     local_over.append((wall - sum(o.seconds for o in s.outcomes)) / n)
+            watch.stop.set()
+            watch.join()
             _row(f"--jobs {jobs}", rates, "captures/s")
+            if jobs > 1:
+                peaks = [v for v in watch.peaks.values() if v > 0]
+                _row("  peak memory of a worker", peaks or [float("nan")], "MB", TARGET_MB)
         _row("  one capture (--jobs 1)", per_capture, "s")
         _row("  batch overhead per task, --jobs 1", local_over, "s", "(lfcam's own)")
-        peak = _peak_mb_children()
-        _row("peak memory of a --jobs 2 worker", [peak], "MB", "target <= 2048 MB (full size)")
         if not args.no_dask:
             _dask_rows(inp, cal, out, args.repeats, statistics.median(per_capture), local_over)
         print(f"  load after: {os.getloadavg()[0]:.1f}")
@@ -152,12 +180,12 @@ def _dask_rows(
                 wall, s = _timed(lambda o: lfcam.process_folder(inp, cal, o, client=client), out)
                 rates.append(len(s.done) / wall)
             _row(f"--cluster local:{workers}", rates, "captures/s", f"start-up {start:.1f} s")
-            peaks = client.run(_peak_mb_self)
+            peaks = client.run(_peak_mb)
             _row(
-                f"peak memory of a local:{workers} worker",
+                "  peak memory of a worker",
                 list(peaks.values()),
                 "MB",
-                "target <= 2048 MB (full size)",
+                TARGET_MB,
             )
     # Overhead: one worker, one thread, so the tasks run one after another.
     with (

@@ -277,6 +277,9 @@ def test_options_checked_and_normalised(small, tmp_path, monkeypatch) -> None:
             lfcam.process_folder(one, cal, out, **{name: value})
         assert str(e.value).startswith(message), (name, value)
     assert not out.exists()
+    # Checked before the calibration is even loaded.
+    with pytest.raises(lfcam.InputError, match=r"^interp: expected one of"):
+        lfcam.process_folder(one, tmp_path / "missing.lfcal", out, interp="nearest")
     # A list of distances is stored as a tuple in the frozen options the workers get.
     from lfcam.batch import folder
 
@@ -576,8 +579,13 @@ def test_cluster_identical_to_jobs_1_calibration_once(small, dask_client, tmp_pa
     summary = lfcam.process_folder(small["in"] / "sub", cal, out2, client=dask_client)
     assert len(summary.done) == 2
     for name in ("planes2", "spheres2"):
-        for f in ("depth.tiff", "points.ply"):
-            assert (out2 / name / f).read_bytes() == (small["ref"] / "sub" / name / f).read_bytes()
+        # The TIFFs' metadata names the calibration file (none here): compare pixels.
+        for f in ("depth.tiff", "confidence.tiff"):
+            got = lfcam.read_image(out2 / name / f)
+            want = lfcam.read_image(small["ref"] / "sub" / name / f)
+            assert got.tobytes() == want.tobytes()
+        ply = (out2 / name / "points.ply").read_bytes()
+        assert ply == (small["ref"] / "sub" / name / "points.ply").read_bytes()
 
 
 def test_cluster_worker_killed_mid_batch(small, dask_client, tmp_path) -> None:

@@ -105,9 +105,12 @@ def test_save_load_and_report(reference_run, tmp_path, capsys) -> None:
     assert img.shape[1] >= 1200
     assert sorted(p.name for p in tmp_path.iterdir()) == [
         "camera.lfcal",
+        "camera.report.html",
         "camera.report.json",
         "camera.report.png",
     ]
+    page = paths["report_html"].read_text()
+    assert 'Verdict: <span class="v pass">pass</span>' in page
     assert main(["info", str(paths["calibration"])]) == 0
     out = capsys.readouterr().out
     assert "3 x 4" in out or "3x4" in out
@@ -265,6 +268,10 @@ def test_board_shift_measured_again_from_the_lattice() -> None:
     moved = cv2.warpAffine(big, M, (w, h), flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP)
     views = np.stack([ref, moved])[..., None].repeat(3, -1)
     masks = np.ones((2, h, w), bool)
-    P, cover, _ = measure_parallax(views, masks, 0, FlowParams(), init={1: np.array(shift) + 2})
-    np.testing.assert_allclose(P[1], shift, atol=0.05)
-    assert cover[1] > 0.5
+    m = measure_parallax(views, masks, 0, FlowParams(), init={1: np.array(shift) + 2})
+    np.testing.assert_allclose(m.shift[1], shift, atol=0.05)
+    assert m.coverage[1] > 0.5
+    # Per cell too: every cell's shift is the one shift.
+    pos, cells = m.cells[1]
+    assert len(pos) >= 20
+    np.testing.assert_allclose(cells, np.broadcast_to(shift, cells.shape), atol=0.1)

@@ -1,6 +1,6 @@
 """Type stub of the Rust extension module (rust/lfcam-py). Checked by mypy.stubtest."""
 
-from typing import Final, TypeVar, final
+from typing import Any, Final, TypeVar, final
 
 import numpy as np
 from numpy.typing import NDArray
@@ -11,6 +11,7 @@ __all__ = [
     "btv_deblur",
     "crop_lenslets",
     "data_weights",
+    "fit_board_tilts",
     "get_num_threads",
     "invert_maps",
     "nan_median",
@@ -227,3 +228,22 @@ def weighted_median_fill(
     sigma_space: float,
 ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """Joint weighted median of ``values`` at the pixels where ``todo`` is non-zero."""
+
+def fit_board_tilts(
+    board: NDArray[np.int64],
+    view: NDArray[np.int64],
+    pos: NDArray[np.float64],
+    parallax: NDArray[np.float64],
+    weight: NDArray[np.float64],
+    distances: NDArray[np.float64],
+    z_b: float,
+    reference: int,
+    offsets: NDArray[np.float64],
+    z_c: float,
+    centre: tuple[float, float],
+    gradient_prior: float,
+    centres: NDArray[np.float64] | None = None,
+    centres_weight: float = 0.0,
+    fit_reference: bool = False,
+) -> dict[str, Any]:
+    """Joint fit of ``o_i``, ``Z_c`` and each board's tilt to parallax samples."""

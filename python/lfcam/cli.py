@@ -156,6 +156,24 @@ def _add_simulate(sub: Any) -> None:
         help="board distances in metres, e.g. 0.8,1,1.25",
     )
     p.add_argument(
+        "--zoom",
+        type=_floats,
+        metavar="F1,F2",
+        help="a parfocal zoom: one setting per focal length in mm, e.g. 50,75,100",
+    )
+    p.add_argument(
+        "--board-tilt",
+        type=float,
+        metavar="DEG",
+        help="tilt each calibration board by a random angle of up to DEG degrees (seeded)",
+    )
+    p.add_argument(
+        "--board-drift",
+        type=float,
+        metavar="MM",
+        help="move each calibration board sideways by up to MM millimetres (seeded)",
+    )
+    p.add_argument(
         "--captures", type=int, metavar="N", help="board captures per distance (default 5)"
     )
     p.add_argument("--no-truth", action="store_true", help="skip the ground truth")
@@ -169,7 +187,8 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     changes: dict[str, Any] = {}
     if args.full_size:
         changes["view_size"] = (1200, 900)
-    for key in ("seed", "grid", "view_size", "bit_depth", "bayer", "raw_format", "distances"):
+    keys = ("seed", "grid", "view_size", "bit_depth", "bayer", "raw_format", "distances")
+    for key in (*keys, "board_tilt", "board_drift", "zoom"):
         value = getattr(args, key)
         if value is not None:
             changes[key] = value
@@ -181,7 +200,9 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         cfg = SimConfig.from_toml(args.config, **changes)
     else:
         cfg = SimConfig.from_dict({}, source="command line", **changes)
-    steps = 4 + len(cfg.distances) + len(cfg.scenes) + (0 if args.no_truth else 1)
+    steps = (4 + len(cfg.distances) + len(cfg.scenes) + (0 if args.no_truth else 1)) * max(
+        1, len(cfg.zoom)
+    )
     t0 = time.perf_counter()
     with _progress(args, steps, "simulate") as bar:
         res = simulate(
@@ -197,6 +218,8 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         f"  rectified frame {cam.W_rect} x {cam.H_rect} px, Z_b = {cam.z_b:g} m, "
         f"Z_c = {cam.z_c:.4f} m"
     )
+    for f, r in res.zoom.items():
+        print(f"  zoom {f:g} mm     Z_c = {r.camera.z_c:.4f} m, {r.calibration_dir}")
     print(f"  calibration     {res.calibration_dir}")
     for name, path in res.captures.items():
         print(f"  capture         {path}  ({name})")
@@ -265,7 +288,9 @@ def _add_calibrate(sub: Any) -> None:
             "board_<distance>m/* (one or more distances; three or more, or two plus the "
             "optical centres, give metric depth with no optics known), and an optional "
             "camera.toml (grid, reference, z_c, pattern_pitch, bayer), which the flags "
-            "override. Writes CAMERA.lfcal, CAMERA.report.json and CAMERA.report.png."
+            "override. Writes CAMERA.lfcal, CAMERA.report.json, CAMERA.report.png and "
+            "CAMERA.report.html (the report as a page: per view numbers, pass/warn/fail "
+            "verdicts against stated thresholds, o_i on the sensor layout, the parallax fit)."
         ),
     )
     p.add_argument("cal_dir", type=Path, metavar="CAL_DIR", help="the calibration folder")
@@ -833,7 +858,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
             f"  {name:10} {100 * med:10.2f} %  {100 * bad:12.2f} %  {100 * cov:8.1f} %  {sec:7.1f}"
         )
     print("  pictures:")
-    print(f"    calibration report  {paths['report_png']}")
+    print(f"    calibration report  {paths['report_html']}")
     for name, *_, folder in rows:
         print(f"    {name:19} {folder / 'depth.png'}")
     return EXIT_OK

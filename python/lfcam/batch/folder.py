@@ -229,6 +229,7 @@ def process_folder(
             f" (options: {', '.join(sorted(fields))})"
         ) from None
     opts = replace(opts, refocus=as_tuple(opts.refocus))  # a list is fine: stored as a tuple
+    opts.check_values()
     if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
         raise InputError(f"jobs: must be an integer >= 1, got {jobs!r}")
     if threads is not None and (not isinstance(threads, int) or threads < 1):
@@ -286,7 +287,10 @@ def process_folder(
         args = (cal_arg, sha256, opts, extra, nthreads)
 
         def runner(batch: list[tuple[CaptureTask, bool]]) -> Iterator[tuple[int, Any]]:
-            return _run_local(batch, workers, args)
+            if workers > 1:
+                return run_pool(batch, workers, _init_worker, args, _run)
+            # In this process, with the calibration already loaded.
+            return _run_here(batch, (calibration, *args[1:]))
 
     # Captures whose lock another run holds are tried again at the end, waiting for it.
     busy: list[int] = []
@@ -320,13 +324,10 @@ def process_folder(
     )
 
 
-def _run_local(
-    jobs: list[tuple[CaptureTask, bool]], workers: int, init_args: tuple[Any, ...]
+def _run_here(
+    jobs: list[tuple[CaptureTask, bool]], init_args: tuple[Any, ...]
 ) -> Iterator[tuple[int, Any]]:
-    """``(index, outcome)`` of each job, in this process (one worker) or a pool."""
-    if workers > 1:
-        yield from run_pool(jobs, workers, _init_worker, init_args, _run)
-        return
+    """``(index, outcome)`` of each job, run in this process."""
     import cv2
 
     from .. import get_num_threads, set_num_threads

@@ -66,9 +66,9 @@ class ProcessOptions:
     interp: str = "bilinear"
     frame: str = "valid"
 
-    def check(self, cal: Calibration) -> None:
-        """Raise :class:`~lfcam.InputError` naming the option that is malformed or that
-        ``cal`` cannot serve."""
+    def check_values(self) -> None:
+        """Raise :class:`~lfcam.InputError` naming a malformed option (no calibration
+        needed: checked before one is loaded)."""
         if self.frame not in FRAMES:
             raise InputError(f"frame: expected one of {', '.join(FRAMES)}, got {self.frame!r}")
         if self.superres is not None and not (
@@ -82,6 +82,11 @@ class ProcessOptions:
             raise InputError(f"interp: expected one of {choices}, got {self.interp!r}")
         if not isinstance(self.refocus, tuple):
             raise InputError(f"refocus: expected a tuple of distances, got {self.refocus!r}")
+
+    def check(self, cal: Calibration) -> None:
+        """Raise :class:`~lfcam.InputError` naming the option that is malformed or that
+        ``cal`` cannot serve."""
+        self.check_values()
         if self.refocus and not cal.metric:
             raise InputError("refocus: the calibration is relative (no Z_c): no metric focus")
         bad = [z for z in self.refocus if not (math.isfinite(z) and z > cal.z_c)]

@@ -23,7 +23,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..errors import CalibrationError, InputError
+from ..errors import CalibrationError, InputError, LfcamError
 from ..io import BAYER_PATTERNS, read_image, to_float, write_image_atomic, write_text_atomic
 from ..kernels.flow import FlowParams
 from ..kernels.warp import remap
@@ -31,9 +31,22 @@ from .file import Calibration
 from .geometric import coarse_homography, register_view
 from .inputs import CaptureReader, find_inputs, mean_capture
 from .layout import find_layout
-from .parallax import fit_depth_model, invert_map, lattice_check, measure_parallax
+from .parallax import (
+    MAX_BOARD_RMS_PX,
+    MAX_TILT_DEG,
+    MAX_TILT_DEPTH_CHANGE,
+    ParallaxMeasurement,
+    depth_change,
+    fit_board_poses,
+    fit_depth_model,
+    invert_map,
+    lattice_check,
+    measure_parallax,
+    tilt_degrees,
+)
 from .photometric import white_gains
 from .report import calibration_figure
+from .report_page import report_html
 
 __all__ = ["CalibrationParams", "CalibrationRun", "calibrate", "run_calibration"]
 
@@ -164,7 +177,9 @@ class CalibrationRun:
     residuals: list[np.ndarray]  # per view photometric residual in the rectified frame
 
     def save(self, path: str | os.PathLike[str]) -> dict[str, Path]:
-        """Write ``X.lfcal``, ``X.report.json`` and ``X.report.png``; each atomically.
+        """Write ``X.lfcal``, ``X.report.json``, ``X.report.png`` and ``X.report.html``
+        (the page a person reads: :func:`lfcam.calibration.report_page.report_html`);
+        each atomically.
 
         The ``.lfcal`` is written last, so its presence means a complete run.
         """
@@ -177,13 +192,104 @@ class CalibrationRun:
         paths = {
             "report_json": stem.with_name(stem.name + ".report.json"),
             "report_png": stem.with_name(stem.name + ".report.png"),
+            "report_html": stem.with_name(stem.name + ".report.html"),
             "calibration": out,
         }
         write_text_atomic(paths["report_json"], json.dumps(self.calibration.report, indent=2))
         fig = calibration_figure(self.calibration, self.white, self.residuals)
         write_image_atomic(paths["report_png"], fig)
+        write_text_atomic(
+            paths["report_html"], report_html(self.calibration, fig, title=f"{out.name}: report")
+        )
         self.calibration.save(out)
         return paths
+
+
+def _fit_with_poses(
+    start: dict[str, Any],
+    measured: dict[float, ParallaxMeasurement],
+    z_b: float,
+    ref: int,
+    centre: np.ndarray,
+    centres_rect: np.ndarray | None,
+    rect_pitch: float | None,
+    shape: tuple[int, int],
+    folders: dict[float, Path],
+) -> dict[str, Any]:
+    """The depth model with every board's tilt relative to the reference board
+    (:func:`fit_board_poses`), starting from the fronto-parallel fit ``start``.
+
+    Raises CalibrationError naming the board's folder for a tilt beyond the model or
+    captures that disagree with it.
+    """
+    try:
+        poses = fit_board_poses(
+            measured, z_b, ref, centre, start, centres_rect=centres_rect, rect_pitch=rect_pitch
+        )
+    except LfcamError as e:
+        raise CalibrationError(
+            f"{folders[z_b].parent}: the depth model with board poses does not fit ({e})"
+        ) from None
+    z_c = float(poses["z_c"])
+    boards: dict[str, Any] = {}
+    gradients: dict[float, np.ndarray] = {}
+    gradients_se: dict[float, np.ndarray] = {}
+    rms: dict[float, float] = {}
+    for k, z in enumerate(poses["zs"]):
+        gradients[z] = np.asarray(poses["gradients"][k])
+        gradients_se[z] = np.asarray(poses["gradients_se"][k])
+        rms[z] = float(poses["board_rms_px"][k])
+    worst = max(rms, key=lambda z: rms[z])
+    if rms[worst] > MAX_BOARD_RMS_PX:
+        raise CalibrationError(
+            f"{folders[worst]}: the board's parallax misses the depth model by"
+            f" {rms[worst]:.2f} px RMS (at most {MAX_BOARD_RMS_PX:g}): these captures"
+            " disagree with the other distances' (is the distance in the folder name"
+            " right, and did the board stay still and flat?)"
+        )
+    for z in sorted(gradients):
+        change = depth_change(gradients[z], centre, shape)
+        slope = None if rect_pitch is None else tilt_degrees(gradients[z], z_b, z_c, rect_pitch)
+        too_much = (
+            change > MAX_TILT_DEPTH_CHANGE if slope is None else math.hypot(*slope) > MAX_TILT_DEG
+        )
+        if too_much:
+            what = (
+                f"its depth changes by {100 * change:.1f}% across the frame (at most"
+                f" {100 * MAX_TILT_DEPTH_CHANGE:g}%)"
+                if slope is None
+                else f"{math.hypot(*slope):.1f} degrees (at most {MAX_TILT_DEG:g})"
+            )
+            raise CalibrationError(
+                f"{folders[z]}: the board is tilted beyond what the depth model handles:"
+                f" {what}; turn it to face the camera"
+            )
+        boards[f"{z:g}"] = {
+            "folder": str(folders[z]),
+            "relative_to": f"{z_b:g}",
+            "gradient_per_px": gradients[z].tolist(),
+            "gradient_se_per_px": gradients_se[z].tolist(),
+            "slope_deg": slope,
+            "depth_change_across_frame": change,
+            "residual_rms_px": rms[z],
+        }
+    zs = np.array(poses["zs"])
+    s = (zs - z_b) / (zs - z_c)
+    fit = {
+        "z_c": z_c,
+        "z_c_se": float(poses["z_c_se"]),
+        "offsets": np.asarray(poses["offsets"]),
+        "offsets_se_px": np.asarray(poses["offsets_se"]).tolist(),
+        "s": {f"{z:g}": float(v) for z, v in zip(zs, s)},
+        "residual_rms_px": float(poses["rms_px"]),
+        "iterations": int(poses["iterations"]),
+        "boards": boards,
+        "fronto_parallel_fit": {
+            "z_c": float(start["z_c"]),
+            "residual_rms_px": start["residual_rms_px"],
+        },
+    }
+    return fit
 
 
 def calibrate(
@@ -364,6 +470,7 @@ def run_calibration(
         centres_rect[i] = invert_map(warps[i], masks[i], layout.centres[i] - layout.crops[i, :2])
     d = centres_rect - centres_rect[ref]
     parallax: dict[float, np.ndarray] = {}
+    measured: dict[float, ParallaxMeasurement] = {}
     fit_info: dict[str, Any] = {}
     for z in distances:
         if z == z_b:
@@ -372,14 +479,17 @@ def run_calibration(
         mean = np.mean([_apply_gains(reader(p), gains) for p in inputs.boards[z]], axis=0)
         views = np.stack([remap(_crop(mean, layout.crops[i]), warps[i]) for i in range(N)])
         views[~masks] = np.nan
-        P, cover, spread = measure_parallax(views, masks, ref, flow)
+        meas = measure_parallax(views, masks, ref, flow)
+        P, cover, spread = meas.shift, meas.coverage, meas.spread
         pred, wrong = lattice_check(P, grid, ref)
         if wrong.any():
             redo = {int(i): pred[i] for i in np.nonzero(wrong)[0]}
             say(f"parallax at {z:g} m: measuring views {sorted(redo)} again from the lattice")
-            P2, cover2, spread2 = measure_parallax(views, masks, ref, flow, init=redo)
+            again = measure_parallax(views, masks, ref, flow, init=redo)
             for i in redo:
-                P[i], cover[i], spread[i] = P2[i], cover2[i], spread2[i]
+                P[i], cover[i], spread[i] = again.shift[i], again.coverage[i], again.spread[i]
+                if i in again.cells:
+                    meas.cells[i] = again.cells[i]
             _, still = lattice_check(P, grid, ref)
             if still.any():
                 bad = [divmod(int(i), C) for i in np.nonzero(still)[0]]
@@ -394,6 +504,7 @@ def run_calibration(
                 f"{inputs.boards[z][0].parent}: cannot measure the board's parallax in views {bad}"
             )
         parallax[z] = P
+        measured[z] = meas
         fit_info[f"{z:g}"] = {
             "parallax_px": P.tolist(),
             "coverage": cover.tolist(),
@@ -402,8 +513,24 @@ def run_calibration(
     use_centres = len(parallax) == 1 and np.isfinite(d).all()
     if len(parallax) >= 2 or use_centres:
         fit = fit_depth_model(parallax, z_b, d if use_centres else None)
+        rect_pitch = pattern_pitch / scale if pattern_pitch is not None else None
+        centre = centres_rect[ref]
+        if not np.isfinite(centre).all():
+            centre = np.array([(W_rect - 1) / 2, (H_rect - 1) / 2])
+        say("board poses")
+        fit = _fit_with_poses(
+            fit,
+            measured,
+            z_b,
+            ref,
+            centre,
+            d if use_centres else None,
+            rect_pitch,
+            (H_rect, W_rect),
+            {z: inputs.boards[z][0].parent for z in distances},
+        )
         z_c_est, offsets, metric = fit["z_c"], fit["offsets"], True
-        route = "distances" + (" + optical centres" if use_centres else "")
+        route = "distances" + (" + optical centres" if use_centres else "") + " + board poses"
     elif z_c is not None:
         z_c_est, offsets, metric = float(z_c), d * float(z_c) / z_b, True
         fit = {"z_c": z_c_est}

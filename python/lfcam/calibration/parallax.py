@@ -10,10 +10,13 @@ then fitted by least squares.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field
 from typing import Any
 
 import cv2
 import numpy as np
+
+import lfcam._lfcam as _lfcam
 
 from ..kernels.flow import FlowParams, dis_flow, prepare
 from ..kernels.warp import identity_grid, remap
@@ -31,14 +34,22 @@ GOLDEN_STEPS = 80
 ERODE_PX = 9
 FB_THRESHOLD_PX = 0.5
 MIN_GOOD_PIXELS = 500
+#: :func:`measure_parallax`'s cells (px) and the passing pixels a cell needs.
+CELL_PX = 32
+CELL_MIN_PIXELS = 256
 
 __all__ = [
     "LATTICE_TOLERANCE_PX",
     "LATTICE_TOLERANCE_REL",
+    "MAX_TILT_DEG",
+    "ParallaxMeasurement",
+    "depth_change",
+    "fit_board_poses",
     "fit_depth_model",
     "invert_map",
     "lattice_check",
     "measure_parallax",
+    "tilt_degrees",
 ]
 
 
@@ -130,19 +141,51 @@ def fit_depth_model(
     }
 
 
+@dataclass
+class ParallaxMeasurement:
+    """The board's parallax from the reference view to every view (:func:`measure_parallax`)."""
+
+    #: ``(N, 2)`` median shift of each view (NaN: not measured), rectified px.
+    shift: np.ndarray
+    #: ``(N,)`` share of the views' common area where the flow passed its checks.
+    coverage: np.ndarray
+    #: ``(N,)`` robust spread of the flow about the median, px.
+    spread: np.ndarray
+    #: View index -> ``(pos (M, 2), shift (M, 2))``: the median shift over each cell of
+    #: CELL_PX x CELL_PX rectified px with at least CELL_MIN_PIXELS passing pixels, at
+    #: their mean position (the samples of :func:`fit_board_poses`).
+    cells: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+
+
+def _cell_medians(good: np.ndarray, flow: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    ys, xs = np.nonzero(good)
+    ncx = -(-good.shape[1] // CELL_PX)
+    cell = (ys // CELL_PX) * ncx + xs // CELL_PX
+    order = np.argsort(cell, kind="stable")
+    cell, ys, xs = cell[order], ys[order], xs[order]
+    f = flow[ys, xs]
+    starts = np.flatnonzero(np.r_[True, cell[1:] != cell[:-1]])
+    ends = np.r_[starts[1:], len(cell)]
+    pos, shift = [], []
+    for a, b in zip(starts, ends):
+        if b - a >= CELL_MIN_PIXELS:
+            pos.append((xs[a:b].mean(), ys[a:b].mean()))
+            shift.append(np.median(f[a:b], axis=0))
+    return np.asarray(pos, np.float64).reshape(-1, 2), np.asarray(shift, np.float64).reshape(-1, 2)
+
+
 def measure_parallax(
     views: np.ndarray,
     masks: np.ndarray,
     ref: int,
     params: FlowParams,
     init: dict[int, np.ndarray] | None = None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Median flow from the reference to each view (rectified board images).
+) -> ParallaxMeasurement:
+    """Median flow from the reference to each view (rectified board images), overall
+    and per cell.
 
     ``init`` maps a view index to an expected shift ``(2,)`` that starts its flow
     (and restricts the measurement to those views; the others get NaN).
-    Returns the parallax ``(N, 2)``, the valid fraction ``(N,)`` and the flows'
-    robust spread ``(N,)``.
     """
     N = views.shape[0]
     a = prepare(views[ref])
@@ -150,6 +193,7 @@ def measure_parallax(
     out = np.full((N, 2), np.nan) if init else np.zeros((N, 2))
     cover = np.zeros(N)
     spread = np.zeros(N)
+    cells: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     for i in range(N):
         if i == ref:
             out[i] = 0.0
@@ -179,7 +223,8 @@ def measure_parallax(
             continue
         out[i] = np.median(f[good], axis=0)
         spread[i] = float(np.median(np.abs(f[good] - out[i]))) * 1.4826
-    return out, cover, spread
+        cells[i] = _cell_medians(good, f)
+    return ParallaxMeasurement(out, cover, spread, cells)
 
 
 #: A view's board shift may differ from the lenslet lattice's prediction by this
@@ -219,3 +264,106 @@ def lattice_check(P: np.ndarray, grid: tuple[int, int], ref: int) -> tuple[np.nd
             return pred, out
         inl[worst] = False
     return pred, np.zeros(len(P), bool)
+
+
+#: The nominal noise of a cell's median shift (px): the cells' weight, against which
+#: the tilt prior below is set.
+CELL_NOISE_PX = 0.05
+#: Prior standard deviation of each board's tilt, degrees (with a known pattern pitch;
+#: else GRADIENT_PRIOR_PX on the gradient): holds a tilt the views cannot see (across a
+#: one-row grid) at zero, and is too wide to pull on one they see.
+TILT_PRIOR_DEG = 10.0
+GRADIENT_PRIOR_PX = 1e-4
+#: The fit handles boards tilted by at most MAX_TILT_DEG degrees (with a known pattern
+#: pitch; else, whose depth from the lenslet centres changes by at most
+#: MAX_TILT_DEPTH_CHANGE across the frame): the frame is the tilted reference board's,
+#: foreshortened by cos(tilt) (0.4% at 5 degrees), which the model leaves out.
+MAX_TILT_DEG = 5.0
+MAX_TILT_DEPTH_CHANGE = 0.03
+#: A board whose cells miss the fitted model by more than this (px RMS) is a board
+#: whose captures disagree (it moved, bent or was not flat).
+MAX_BOARD_RMS_PX = 0.25
+
+
+def fit_board_poses(
+    measured: dict[float, ParallaxMeasurement],
+    z_b: float,
+    ref: int,
+    centre: np.ndarray,
+    start: dict[str, Any],
+    *,
+    centres_rect: np.ndarray | None = None,
+    rect_pitch: float | None = None,
+) -> dict[str, Any]:
+    """``o_i``, ``Z_c`` and every board's tilt by nonlinear least squares (Rust core).
+
+    ``measured[Z_k]`` holds board ``k``'s per-cell parallax; ``start`` is a
+    fronto-parallel :func:`fit_depth_model` (the starting point); ``centre`` is where
+    the reference lenslet's axis crosses the rectified frame (its image-circle centre
+    there); ``centres_rect`` adds the optical-centre equations (two distances);
+    ``rect_pitch`` (metres per rectified px at ``Z_b``) gives the tilts in degrees.
+    A tilt is a board's depth gradient ``g`` (per rectified px, relative to ``Z_b -
+    Z_c``): the board is ``w = w_k + g . (x - centre)`` in units of ``Z_b - Z_c``
+    (docs/design.md, "Parallax fit"). The reference board is the frame's
+    fronto-parallel plane: the others' tilts are relative to it (its own shows only
+    through an effect too weak to measure under the flow's noise).
+
+    Returns
+    -------
+    dict
+        ``z_c``, ``offsets`` ``(N, 2)``, their standard errors ``z_c_se``,
+        ``offsets_se``, ``gradient_ref`` (the reference board), ``gradients`` (one per
+        other board, ``zs`` order), their standard errors, ``board_rms_px``, ``rms_px``,
+        ``iterations``, ``zs``.
+    """
+    zs = sorted(measured)
+    board, view, pos, par = [], [], [], []
+    for k, z in enumerate(zs):
+        for i, (p, s) in sorted(measured[z].cells.items()):
+            board.append(np.full(len(p), k))
+            view.append(np.full(len(p), i))
+            pos.append(p)
+            par.append(s)
+    n_samples = sum(len(b) for b in board)
+    N = len(start["offsets"])
+    z_c0 = float(start["z_c"])
+    if rect_pitch is not None:
+        prior = math.tan(math.radians(TILT_PRIOR_DEG)) * rect_pitch / (z_b - z_c0)
+    else:
+        prior = GRADIENT_PRIOR_PX
+    # The optical centres weigh as much as one distance's cells of a view.
+    per_view = n_samples / max(1, len(zs) * (N - 1)) / CELL_NOISE_PX**2
+    fit = _lfcam.fit_board_tilts(
+        np.concatenate(board).astype(np.int64),
+        np.concatenate(view).astype(np.int64),
+        np.ascontiguousarray(np.concatenate(pos), np.float64),
+        np.ascontiguousarray(np.concatenate(par), np.float64),
+        np.full(n_samples, 1.0 / CELL_NOISE_PX**2),
+        np.asarray(zs, np.float64),
+        float(z_b),
+        int(ref),
+        np.ascontiguousarray(start["offsets"], np.float64),
+        z_c0,
+        (float(centre[0]), float(centre[1])),
+        float(prior),
+        None if centres_rect is None else np.ascontiguousarray(centres_rect, np.float64),
+        float(per_view),
+    )
+    fit["offsets"] = np.asarray(fit["offsets"])
+    fit["offsets_se"] = np.asarray(fit["offsets_se"])
+    fit["zs"] = zs
+    return fit
+
+
+def tilt_degrees(gradient: np.ndarray, z_b: float, z_c: float, rect_pitch: float) -> list[float]:
+    """A board's slope along x and y, degrees, from its depth gradient (per rectified px)."""
+    g = np.asarray(gradient, np.float64) * (z_b - z_c) / rect_pitch
+    return [math.degrees(math.atan(float(v))) for v in g]
+
+
+def depth_change(gradient: np.ndarray, centre: np.ndarray, shape: tuple[int, int]) -> float:
+    """The largest relative change of a board's depth (from the lenslet centres) over the
+    rectified frame of ``shape`` (H, W), for its gradient (per px) about ``centre``."""
+    H, W = shape
+    corners = np.array([[0, 0], [W - 1, 0], [0, H - 1], [W - 1, H - 1]], np.float64)
+    return float(np.abs((corners - np.asarray(centre)) @ np.asarray(gradient)).max())

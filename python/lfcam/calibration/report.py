@@ -12,7 +12,7 @@ import numpy as np
 
 from .file import Calibration
 
-__all__ = ["calibration_figure", "flow_colours"]
+__all__ = ["TITLE_BAND", "calibration_figure", "flow_colours"]
 
 
 def flow_colours(d: np.ndarray, valid: np.ndarray, max_mag: float | None = None) -> np.ndarray:
@@ -42,11 +42,15 @@ def _affine_residual(warp: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return (warp - fit).astype(np.float32)
 
 
+#: Height of the white band above each part of the report picture that holds its title.
+TITLE_BAND = 32
+
+
 def _label(img: np.ndarray, text: str) -> np.ndarray:
-    out = img.copy()
-    cv2.putText(out, text, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 3, cv2.LINE_AA)
-    cv2.putText(out, text, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1, cv2.LINE_AA)
-    return out
+    """``img`` under a white band with its title, drawn once: never over the picture."""
+    band = np.full((TITLE_BAND, img.shape[1], 3), 255, np.uint8)
+    cv2.putText(band, text, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 1, cv2.LINE_AA)
+    return np.concatenate([band, img], axis=0)
 
 
 def _fit(img: np.ndarray, width: int) -> np.ndarray:

@@ -256,7 +256,7 @@ def write_image(
     if ext not in WRITABLE_EXTENSIONS:
         raise InputError(f"{p}: unsupported output type {p.suffix!r} (use .png, .tif or .tiff)")
     img = np.asarray(img)
-    if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] not in (1, 3)):
+    if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] not in (1, 3)) or img.size == 0:
         raise InputError(f"{p}: cannot write an image of shape {img.shape}")
     if ext == ".png":
         if img.dtype not in (np.uint8, np.uint16):

@@ -123,7 +123,7 @@ _INT_RANGES = (
     ("robust_iterations", 0, 100),
     ("place_iterations", 0, 100),
     ("deblur_iterations", 0, 1000),
-    ("window", 1, 16),
+    ("window", 1, 8),
 )
 # (name, must be > 0) of SuperResParams' floats; the others must be >= 0.
 _FLOATS = (
@@ -411,7 +411,7 @@ def shift_and_add(
     Examples
     --------
     >>> import numpy as np
-    >>> from lfcam.superres import shift_and_add
+    >>> from lfcam.products.superres import shift_and_add
     >>> pos = np.array([[0.0, 0.0], [0.1, 0.0]], np.float32)
     >>> val = np.array([[1.0], [3.0]], np.float32)
     >>> s, w = shift_and_add(pos, val, (2, 2), factor=2)

@@ -138,6 +138,18 @@ class SimConfig:
     board_distance : float
         Distance of the test board scene (``board``), metres; default 1.12 m,
         not a calibration distance.
+    board_tilt : float
+        Largest tilt of a calibration board, degrees: each distance's board is
+        turned by a random angle between half this and this, about a random axis in
+        its plane (seeded), as boards in a real lab are.
+    board_drift : float
+        Largest lateral drift of a calibration board, millimetres: each distance's
+        board is moved sideways by a random amount between half this and this, in a
+        random direction (seeded), as a rail does.
+    zoom : tuple of float
+        Focal lengths (mm) of a parfocal zoom's settings to simulate, each with its own
+        calibration boards, captures and truth (:meth:`zoom_setting`); empty: the one
+        setting ``focal_length``.
     raw_format : str
         ``png``, ``tiff`` or ``dng`` (camera raw: a Bayer mosaic with a black level
         and the EXIF focal length, exposure, ISO and aperture; needs ``bayer``).
@@ -173,6 +185,9 @@ class SimConfig:
     white_captures: int = 3
     scenes: tuple[str, ...] = ("planes", "spheres", "layered")
     board_distance: float = 1.12
+    board_tilt: float = 0.0
+    board_drift: float = 0.0
+    zoom: tuple[float, ...] = ()
     raw_format: str = "png"
     seed: int = 0
 
@@ -225,6 +240,17 @@ class SimConfig:
             raise bad("captures_per_distance", "need at least one capture of each kind")
         if len(self.colour_cast) != 3 or min(self.colour_cast) <= 0:
             raise bad("colour_cast", f"need three positive numbers, got {self.colour_cast!r}")
+        if not (0 <= self.board_tilt <= 20):
+            raise bad("board_tilt", f"must be 0 to 20 degrees, got {self.board_tilt!r}")
+        if not (0 <= self.board_drift <= 100):
+            raise bad("board_drift", f"must be 0 to 100 mm, got {self.board_drift!r}")
+        if self.zoom:
+            if len(set(self.zoom)) != len(self.zoom) or not all(
+                _is_real(f) and 5 <= f <= 1000 for f in self.zoom
+            ):
+                raise bad("zoom", f"need distinct focal lengths of 5 to 1000 mm, got {self.zoom!r}")
+            for f in self.zoom:
+                self.zoom_setting(f)
         if not (0 < self.exposure <= 1):
             raise bad("exposure", f"must be in (0, 1], got {self.exposure!r}")
 
@@ -253,6 +279,20 @@ class SimConfig:
     @property
     def raw_shape(self) -> tuple[int, int]:
         return (self.grid[0] * self.view_size[1], self.grid[1] * self.view_size[0])
+
+    def zoom_setting(self, focal_length_mm: float) -> SimConfig:
+        """This camera at another setting of a parfocal zoom: the thin-lens equivalent of
+        focal length ``focal_length_mm`` whose principal plane moves with it so that the
+        reference distance's image stays where it was (the lenslets stay in focus):
+        ``D' = f' Z_b / (Z_b - f') + (D - f Z_b / (Z_b - f))``."""
+        f, d, z = self.focal_length, self.lens_to_lenslet, self.z_b
+        f2 = focal_length_mm * 1e-3
+        if not f2 < z:
+            raise InputError(
+                f"simulator config 'zoom': {focal_length_mm:g} mm is not shorter than Z_b = {z:g} m"
+            )
+        d2 = f2 * z / (z - f2) + (d - f * z / (z - f))
+        return dataclasses.replace(self, focal_length=f2, lens_to_lenslet=d2, zoom=())
 
     def replace(self, **changes: Any) -> SimConfig:
         """A copy with some fields changed (validated)."""
@@ -602,6 +642,20 @@ class SimulatedCamera:
     def optical_centre_sensor(self, i: int) -> np.ndarray:
         """Actual sensor position of the ray through the front lens centre (image-circle centre)."""
         return self.actual_from_ideal(i, self.pp[i])
+
+    def board_poses(self) -> np.ndarray:
+        """Each calibration distance's board pose, ``(K, 4)`` in ``cfg.distances``' order:
+        tilt about the x and y axes (degrees) and lateral drift x, y (metres); zero
+        unless ``board_tilt`` / ``board_drift`` are set."""
+        cfg = self.cfg
+        rng = np.random.default_rng(np.random.SeedSequence([0xB0A4D, cfg.seed & 0xFFFFFFFF]))
+        out = np.zeros((len(cfg.distances), 4))
+        for k in range(len(cfg.distances)):
+            phi, psi = rng.uniform(0, 2 * np.pi, 2)  # tilt axis, drift direction
+            tilt = rng.uniform(0.5, 1) * cfg.board_tilt
+            d = rng.uniform(0.5, 1) * cfg.board_drift * 1e-3
+            out[k] = [tilt * np.cos(phi), tilt * np.sin(phi), d * np.cos(psi), d * np.sin(psi)]
+        return out
 
     # -- truth for calibration ----------------------------------------------------
     def lit_boxes(self) -> np.ndarray:

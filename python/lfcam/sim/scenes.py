@@ -141,8 +141,15 @@ def make_scene(name: str, cam: SimulatedCamera, seed: int = 0) -> Scene:
     return Scene(name, surfaces)
 
 
-def _board_plane(cam: SimulatedCamera, z: float) -> _Plane:
-    """The calibration pattern shown on a flat, fronto-parallel board at depth ``z``."""
+def _board_plane(cam: SimulatedCamera, z: float, pose: np.ndarray | None = None) -> _Plane:
+    """The calibration pattern shown on a flat board at depth ``z``: fronto-parallel and
+    centred on the axis, or with ``pose`` (:meth:`SimulatedCamera.board_poses`: tilts
+    about x and y in degrees, drift in metres) turned about and moved from there."""
+    tx, ty, dx, dy = (0.0, 0.0, 0.0, 0.0) if pose is None else (float(v) for v in pose)
+    ax, ay = np.radians(tx), np.radians(ty)
+    rx = np.array([[1, 0, 0], [0, np.cos(ax), -np.sin(ax)], [0, np.sin(ax), np.cos(ax)]])
+    ry = np.array([[np.cos(ay), 0, np.sin(ay)], [0, 1, 0], [-np.sin(ay), 0, np.cos(ay)]])
+    rot = ry @ rx
     pattern = cam.pattern
     img = (0.03 + 0.94 * (pattern.astype(np.float32) / 255.0))[..., None].repeat(3, axis=2)
     origin = (
@@ -151,9 +158,9 @@ def _board_plane(cam: SimulatedCamera, z: float) -> _Plane:
     )
     tex = _Texture(np.ascontiguousarray(img), cam.pattern_pitch, origin)
     return _Plane(
-        np.array([0.0, 0.0, z]),
-        np.array([0.0, 0.0, 1.0]),
-        np.array([1.0, 0.0, 0.0]),
+        np.array([dx, dy, z]),
+        rot @ np.array([0.0, 0.0, 1.0]),
+        rot @ np.array([1.0, 0.0, 0.0]),
         None,
         tex,
         label=1,

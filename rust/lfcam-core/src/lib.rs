@@ -13,6 +13,7 @@
 pub mod crop;
 pub mod error;
 pub mod fill;
+pub mod fit;
 pub mod image;
 pub mod parallel;
 pub mod raster;

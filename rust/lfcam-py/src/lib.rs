@@ -9,6 +9,7 @@ mod arrays;
 mod crop;
 mod errors;
 mod fill;
+mod fit;
 mod info;
 mod raster;
 mod rectify;
@@ -30,6 +31,8 @@ mod lfcam_ext {
     use crate::crop::crop_lenslets;
     #[pymodule_export]
     use crate::fill::weighted_median_fill;
+    #[pymodule_export]
+    use crate::fit::fit_board_tilts;
     #[pymodule_export]
     use crate::info::simd_info;
     #[pymodule_export]
