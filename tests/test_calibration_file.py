@@ -65,6 +65,7 @@ DATASETS = {
     "gains",
     "bayer",
     "report",
+    "focal_length",
 }
 
 
@@ -294,8 +295,8 @@ def test_file_is_plain_hdf5(good_file: Path, metric_calib: Calibration) -> None:
         assert set(f.keys()) == DATASETS
         assert all(isinstance(f[k], h5py.Dataset) for k in f)
         assert f.attrs["format"] == "lfcam-calibration"
-        assert f.attrs["format_version"] == "1.1"
-        assert FORMAT_VERSION == (1, 1)
+        assert f.attrs["format_version"] == "1.2"
+        assert FORMAT_VERSION == (1, 2)
         assert f.userblock_size == 512
         assert all(re.fullmatch("[0-9a-f]{64}", f[k].attrs["sha256"]) for k in f)
         assert f.attrs["software_version"] == lfcam.__version__
@@ -548,7 +549,7 @@ BAD_FILES: list[tuple[str, Callable[[h5py.File], Any], str]] = [
     (
         "extra",
         lambda f: f.create_dataset("notes", data=1),
-        "unexpected dataset 'notes' in a format 1.1 file",
+        "unexpected dataset 'notes' in a format 1.2 file",
     ),
     (
         "group",
@@ -794,7 +795,7 @@ def test_summary_metric(good_file: Path, metric_calib: Calibration) -> None:
     lines = s.splitlines()
     assert lines[0] == "lfcam calibration"
     for needle in [
-        "format            lfcam-calibration 1.1",
+        "format            lfcam-calibration 1.2",
         f"software version  {lfcam.__version__}",
         "grid              3 x 4 lenslets (12 views)",
         "reference view    5 (row 1, col 1)",
@@ -851,7 +852,7 @@ def test_info(good_file: Path, metric_calib: Calibration) -> None:
     text = info(good_file)
     lines = text.splitlines()
     assert lines[0] == f"file         {good_file}"
-    assert lines[1] == "file format  1.1"
+    assert lines[1] == "file format  1.2"
     assert lines[2].startswith("created      20")
     assert lines[3] == f"sha256       {file_hash(good_file)}"
     assert lines[4] == "checksums    verified (the file, every dataset)"
@@ -934,9 +935,9 @@ def test_damaged_user_block(good_file: Path) -> None:
     with pytest.raises(CalibrationError, match=r"its checksum block .* is damaged"):
         Calibration.load(good_file)
     data[200] = 0
-    data[0:5] = b"LFCAM"  # no seal: then it claims 1.1 without checksums
+    data[0:5] = b"LFCAM"  # no seal: then it claims 1.2 without checksums
     good_file.write_bytes(bytes(data))
-    with pytest.raises(CalibrationError, match=r"a format 1\.1 file carries a checksum"):
+    with pytest.raises(CalibrationError, match=r"a format 1\.2 file carries a checksum"):
         Calibration.load(good_file)
 
 

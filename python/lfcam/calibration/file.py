@@ -6,7 +6,7 @@ and when it is loaded, by one function, so an invalid calibration cannot exist i
 memory or on disk. Loading never runs code from the file: only numbers, plain strings
 and a JSON document are read.
 
-File layout, format 1.1
+File layout, format 1.2
 -----------------------
 One HDF5 file, readable with any HDF5 library (h5py, MATLAB ``h5read``, Julia HDF5.jl,
 the C API). Shapes below are in C (row-major) order, as h5py and C see them; MATLAB and
@@ -18,14 +18,15 @@ Root attributes (strings):
 
 ====================  ===================================================================
 ``format``            ``"lfcam-calibration"``
-``format_version``    ``"MAJOR.MINOR"``, ``"1.1"`` here. A reader refuses a newer MAJOR;
+``format_version``    ``"MAJOR.MINOR"``, ``"1.2"`` here. A reader refuses a newer MAJOR;
                       a newer MINOR only adds datasets, which older readers ignore.
 ``software_version``  the lfcam version that wrote the file
 ``created``           ISO-8601 UTC time of writing, e.g. ``2026-05-01T12:00:00+00:00``
 ``sha256``            checksum of the other root attributes (see Checksums)
 ====================  ===================================================================
 
-Datasets at the root, one per field of :class:`Calibration` (no groups, no others):
+Datasets at the root, one per field of :class:`Calibration` (no others; one group,
+``zoom``, see Zoom settings):
 
 =================  =======  ======================  =======================================
 name               dtype    shape                   meaning
@@ -53,6 +54,9 @@ name               dtype    shape                   meaning
 ``bayer``          string   ()                      ``RGGB``, ``BGGR``, ``GRBG``, ``GBRG``,
                                                     or ``""`` for none
 ``report``         string   ()                      the calibration report, a JSON object
+``focal_length``   float64  ()                      the front lens's focal length of this
+                                                    optical setting, mm; NaN: one setting
+                                                    (absent before format 1.2: NaN)
 =================  =======  ======================  =======================================
 
 ``warps``, ``masks`` and ``gains`` are chunked (at most 256 x 256 pixels, one view per
@@ -60,6 +64,16 @@ chunk) and stored with the shuffle, gzip (level 4) and Fletcher-32 checksum filt
 all built into HDF5. A reader also accepts any integer dtype for the int64 datasets,
 any float or integer dtype for the float ones, and 0/1 integers or booleans for
 ``masks`` and ``metric``; lfcam converts them to the dtypes above.
+
+Zoom settings (format 1.2)
+--------------------------
+A camera calibrated at several focal lengths of its zoom lens keeps the first setting
+at the root and each other one in a group ``zoom/<j>`` (``j`` = 1, 2, ...), holding only
+the datasets that differ from the root's (at least ``focal_length``; ``offsets``,
+``z_c``, ``z_b``, ``distances``, ``report``; ``warps`` and ``masks`` only when that
+setting does not share the root's), checked like the root's. A setting is the root's
+datasets overridden by its group's. ``grid``, ``raw_shape`` and ``bayer`` are the
+root's for every setting.
 
 Checksums (format 1.1)
 ----------------------
@@ -113,15 +127,19 @@ __all__ = [
     "FORMAT_VERSION",
     "MAX_DISTANCES",
     "MAX_VIEWS",
+    "ZOOM_TOLERANCE",
     "Calibration",
     "file_hash",
     "info",
+    "load_settings",
+    "save_settings",
+    "select_setting",
 ]
 
 FORMAT_NAME = "lfcam-calibration"
 """The root ``format`` attribute of every ``.lfcal`` file."""
 
-FORMAT_VERSION = (1, 1)
+FORMAT_VERSION = (1, 2)
 """(MAJOR, MINOR) of the file format this module writes and reads (and older MINORs)."""
 
 MAX_VIEWS = 4096
@@ -172,12 +190,26 @@ _DESCRIPTIONS = {
     "gains": "(H_raw, W_raw, C) multiplier of the raw frame scaled to [0, 1]; 0 where masked",
     "bayer": "Bayer pattern of the raw frames (RGGB, BGGR, GRBG, GBRG) or empty for none",
     "report": "calibration report, a JSON object",
+    "focal_length": "front lens focal length of this optical setting, mm; NaN: one setting",
 }
+# Datasets a zoom setting's group may not hold: every setting shares the root's.
+_SHARED_BY_SETTINGS = ("grid", "raw_shape", "bayer")
+_ZOOM_GROUP = "zoom"
+#: A focal length picks the zoom setting whose focal length is within this share of it.
+ZOOM_TOLERANCE = 0.02
 
 # The datasets of a format-1.x file: every field but software_version (a root attribute).
 _DATASETS = tuple(_DESCRIPTIONS)
 _STRING_DATASETS = ("bayer", "report")
-_SCALAR_DATASETS = ("reference", "scale", "z_b", "z_c", "metric", "pattern_pitch")
+_SCALAR_DATASETS = (
+    "reference",
+    "scale",
+    "z_b",
+    "z_c",
+    "metric",
+    "pattern_pitch",
+    "focal_length",
+)
 # dtype kinds a numeric dataset or field may have (b: bool, i/u: integers, f: floats).
 _INT_KINDS = "iu"
 _FLOAT_KINDS = "fiu"
@@ -465,6 +497,11 @@ def _validate(values: Mapping[str, Any], where: str) -> dict[str, Any]:
         fail(f"report: not JSON-serialisable ({e}); use None, not NaN, for missing numbers")
     out["report"] = json.loads(text)
 
+    focal = _float(values.get("focal_length", math.nan), "focal_length", where)
+    if not (math.isnan(focal) or (math.isfinite(focal) and focal > 0)):
+        fail(f"focal_length: expected a finite number > 0 mm, or NaN, got {focal}")
+    out["focal_length"] = focal
+
     version = values["software_version"]
     if not isinstance(version, str) or not version.strip():
         fail(f"software_version: expected a non-empty string, got {version!r}")
@@ -524,6 +561,9 @@ class Calibration:
         0 where masked.
     bayer : str or None
         None, or the raw frames' Bayer pattern: ``RGGB``, ``BGGR``, ``GRBG``, ``GBRG``.
+    focal_length : float
+        The front lens's focal length (mm) of this optical setting, for a zoom lens
+        calibrated at several settings; NaN for a camera with one.
     report : dict
         The calibration report, a JSON object (strict JSON: no NaN; use None). Stored
         as its JSON round trip, so tuples become lists and keys strings. Headline
@@ -556,6 +596,7 @@ class Calibration:
     gains: NDArray[np.float32]
     bayer: str | None
     report: dict[str, Any]
+    focal_length: float = math.nan
     software_version: str = __version__
 
     def __post_init__(self) -> None:
@@ -631,7 +672,13 @@ class Calibration:
     # ----------------------------------------------------------------------- reading
 
     @classmethod
-    def load(cls, path: str | os.PathLike[str], *, sha256: str | None = None) -> Calibration:
+    def load(
+        cls,
+        path: str | os.PathLike[str],
+        focal_length: float | None = None,
+        *,
+        sha256: str | None = None,
+    ) -> Calibration:
         """Read and validate an ``.lfcal`` file.
 
         Parameters
@@ -642,6 +689,9 @@ class Calibration:
         sha256 : str, optional
             Refuse the file unless its SHA-256 (:func:`lfcam.io.file_hash`) is this:
             the bytes hashed are the bytes parsed.
+        focal_length : float, optional
+            For a file of several zoom settings: the focal length (mm) whose setting
+            to load (within ZOOM_TOLERANCE; :func:`select_setting`).
 
         Returns
         -------
@@ -658,8 +708,8 @@ class Calibration:
             inconsistent data, or its SHA-256 is not ``sha256``. The message starts
             with the path and names the dataset or attribute at fault.
         """
-        values, _ = _read(path, sha256)
-        return cls(**values)
+        settings = load_settings(path, sha256=sha256)
+        return select_setting(settings, focal_length, str(path), "focal_length")
 
     # ----------------------------------------------------------------------- display
 
@@ -704,6 +754,10 @@ class Calibration:
             ("board distances", ", ".join(f"{d:.6g}" for d in self.distances.tolist()) + " m"),
             ("pattern pitch", pitch),
             ("Bayer", self.bayer or "none"),
+            (
+                "focal length",
+                "one setting" if math.isnan(self.focal_length) else f"{self.focal_length:g} mm",
+            ),
             ("gains", f"{n_ch} channel{'s' if n_ch > 1 else ''}, {masked:.1f}% of raw px masked"),
             ("report", ", ".join(str(k) for k in self.report) or "empty"),
         ]
@@ -962,27 +1016,104 @@ def _write_dataset(
     return ds
 
 
-def _write(f: h5py.File, values: Mapping[str, Any]) -> None:
+def _field_data(name: str, value: Any) -> Any:
+    """A validated field's value as its dataset stores it."""
+    if name == "bayer":
+        return value or ""
+    if name == "report":
+        return json.dumps(value, allow_nan=False, ensure_ascii=False)
+    if name in ("masks", "metric"):
+        return np.asarray(value, dtype=np.uint8)
+    if isinstance(value, tuple) or name == "reference":
+        return np.asarray(value, dtype=np.int64)
+    if isinstance(value, float):
+        return np.float64(value)
+    return value
+
+
+def _same(a: Any, b: Any) -> bool:
+    if a is b:
+        return True
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        a, b = np.asarray(a), np.asarray(b)
+        return a.shape == b.shape and bool(
+            np.array_equal(a, b, equal_nan=a.dtype.kind == "f" and b.dtype.kind == "f")
+        )
+    if isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b):
+        return True
+    return bool(a == b)
+
+
+def _write(f: h5py.File, values: Mapping[str, Any], settings: list[Mapping[str, Any]] = ()) -> None:
     f.attrs["format"] = FORMAT_NAME
     f.attrs["format_version"] = f"{FORMAT_VERSION[0]}.{FORMAT_VERSION[1]}"
     f.attrs["software_version"] = values["software_version"]
     f.attrs["created"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
     for name in _DATASETS:
-        value = values[name]
-        if name == "bayer":
-            data: Any = value or ""
-        elif name == "report":
-            data = json.dumps(value, allow_nan=False, ensure_ascii=False)
-        elif name in ("masks", "metric"):
-            data = np.asarray(value, dtype=np.uint8)
-        elif isinstance(value, tuple) or name == "reference":
-            data = np.asarray(value, dtype=np.int64)
-        elif isinstance(value, float):
-            data = np.float64(value)
-        else:
-            data = value
+        data = _field_data(name, values[name])
         _write_dataset(f, name, data, _DESCRIPTIONS[name], compressed=name in _COMPRESSED)
+    if settings:
+        zoom = f.create_group(_ZOOM_GROUP)
+        for j, other in enumerate(settings, start=1):
+            g = zoom.create_group(str(j))
+            for name in _DATASETS:
+                if name == "focal_length" or not _same(other[name], values[name]):
+                    data = _field_data(name, other[name])
+                    compressed = name in _COMPRESSED
+                    _write_dataset(g, name, data, _DESCRIPTIONS[name], compressed=compressed)
     f.attrs[_DIGEST_ATTR] = _digest(_attrs_items(f))
+
+
+def save_settings(path: str | os.PathLike[str], settings: list[Calibration]) -> Path:
+    """Write the calibrations of a zoom lens's optical settings to one ``.lfcal`` file,
+    atomically (layout: this module's "Zoom settings").
+
+    Parameters
+    ----------
+    path : path-like
+        Destination.
+    settings : list of Calibration
+        One per focal length (each finite and different); the first is the file's root.
+        A setting that shares the first's warp maps stores none of its own.
+
+    Raises
+    ------
+    CalibrationError
+        A setting is invalid, lacks a focal length, repeats one, or differs from the
+        first in grid, raw frame or Bayer pattern.
+    InputError
+        As :meth:`Calibration.save`.
+    """
+    p = Path(path)
+    if not settings:
+        raise CalibrationError(f"{p}: no settings to save")
+    values = [
+        _validate(c._values(), f"cannot save calibration (zoom setting {j})")
+        for j, c in enumerate(settings)
+    ]
+    seen: list[float] = []
+    for j, v in enumerate(values):
+        f = v["focal_length"]
+        if len(values) > 1 and not math.isfinite(f):
+            raise CalibrationError(f"{p}: zoom setting {j}: focal_length is NaN")
+        if f in seen:
+            raise CalibrationError(f"{p}: two zoom settings of focal length {f:g} mm")
+        seen.append(f)
+        for name in _SHARED_BY_SETTINGS:
+            if not _same(v[name], values[0][name]):
+                raise CalibrationError(
+                    f"{p}: zoom setting {f:g} mm: {name} {v[name]!r} differs from the first"
+                    f" setting's {values[0][name]!r} (one camera)"
+                )
+    if not p.parent.is_dir():
+        raise InputError(f"{p}: folder {p.parent} does not exist")
+    if p.is_dir():
+        raise InputError(f"{p}: is a folder")
+    with atomic_output(p) as tmp:
+        with h5py.File(tmp, "w", userblock_size=_USERBLOCK_SIZE) as fh:
+            _write(fh, values[0], values[1:])
+        _seal_file(tmp)
+    return p
 
 
 def _attr_str(f: h5py.File, name: str, where: str) -> str:
@@ -1122,6 +1253,11 @@ def _read_hdf5(
                     "(changed or damaged after the file was written)"
                 )
             members = set(f.keys())
+            if version >= (1, 2):
+                members.discard(_ZOOM_GROUP)
+            else:
+                members.add("focal_length")  # absent before 1.2: NaN
+                raw["focal_length"] = math.nan
             missing = [name for name in _DATASETS if name not in members]
             if missing:
                 raise CalibrationError(
@@ -1146,10 +1282,66 @@ def _read_hdf5(
             for name in _DATASETS:
                 if name not in raw:
                     raw[name] = _read_dataset(f, name, where, shapes.get(name), sealed=sealed)
+            header["settings"] = (
+                _read_settings(f[_ZOOM_GROUP], raw, where, sealed=sealed)
+                if version >= (1, 2) and _ZOOM_GROUP in f
+                else []
+            )
     except (OSError, KeyError, ValueError, RuntimeError, TypeError) as e:
         raise CalibrationError(f"{where}: corrupt or truncated: {e}") from None
     header["checksums"] = sealed
     return raw, header
+
+
+def _read_settings(
+    zoom: Any, root: dict[str, Any], where: str, *, sealed: bool
+) -> list[dict[str, Any]]:
+    """Each zoom setting's raw values: the root's overridden by its group's datasets."""
+    if not isinstance(zoom, h5py.Group):
+        raise CalibrationError(f"{where}: {_ZOOM_GROUP}: expected a group")
+    keys = sorted(zoom.keys(), key=lambda k: (len(k), k))
+    if keys != [str(j) for j in range(1, len(keys) + 1)] or len(keys) > MAX_DISTANCES:
+        raise CalibrationError(
+            f"{where}: {_ZOOM_GROUP}: expected groups 1, 2, ... (at most {MAX_DISTANCES}),"
+            f" got {keys[:10]}"
+        )
+    out = []
+    for key in keys:
+        g = zoom[key]
+        here = f"{where}: {_ZOOM_GROUP}/{key}"
+        if not isinstance(g, h5py.Group):
+            raise CalibrationError(f"{here}: expected a group")
+        names = set(g.keys())
+        bad = sorted(names - set(_DATASETS) | (names & set(_SHARED_BY_SETTINGS)))
+        if bad or "focal_length" not in names:
+            raise CalibrationError(
+                f"{here}: a setting holds focal_length and datasets other than"
+                f" {', '.join(_SHARED_BY_SETTINGS)}; got {sorted(names)}"
+            )
+        raw = dict(root)
+        if "rect_shape" in names:
+            raw["rect_shape"] = _int_pair(
+                _read_dataset(g, "rect_shape", here, None, sealed=sealed), "rect_shape", here
+            )
+            _check_sizes(raw["grid"], raw["raw_shape"], raw["rect_shape"], here)
+        shapes = _expected_shapes(raw["grid"], raw["raw_shape"], raw["rect_shape"])
+        for name in sorted(names - {"rect_shape"}):
+            raw[name] = _read_dataset(g, name, here, shapes.get(name), sealed=sealed)
+        for name in ("warps", "masks"):
+            if name not in names and raw["rect_shape"] != root["rect_shape"]:
+                raise CalibrationError(
+                    f"{here}: rect_shape differs from the root's, so {name} must too"
+                )
+        out.append(raw)
+    return out
+
+
+def _finish(raw: dict[str, Any], header: dict[str, Any], where: str) -> dict[str, Any]:
+    raw["bayer"] = raw["bayer"] or None
+    if isinstance(raw["report"], str):
+        raw["report"] = _parse_report(raw["report"], where)
+    raw["software_version"] = header["software_version"]
+    return _validate(raw, where)
 
 
 def _read(
@@ -1189,10 +1381,51 @@ def _read(
             LfcamWarning,
             stacklevel=3,
         )
-    raw["bayer"] = raw["bayer"] or None
-    raw["report"] = _parse_report(raw["report"], where)
-    raw["software_version"] = header["software_version"]
-    return _validate(raw, where), header
+    header["settings"] = [
+        _finish(dict(r), header, f"{where}: {_ZOOM_GROUP}/{j}")
+        for j, r in enumerate(header.get("settings", []), start=1)
+    ]
+    return _finish(raw, header, where), header
+
+
+def load_settings(path: str | os.PathLike[str], *, sha256: str | None = None) -> list[Calibration]:
+    """Every optical setting of an ``.lfcal`` file (one for a camera without zoom
+    settings), validated; as :meth:`Calibration.load`."""
+    values, header = _read(path, sha256)
+    return [Calibration(**values)] + [Calibration(**v) for v in header["settings"]]
+
+
+def select_setting(
+    settings: list[Calibration], focal_length: float | None, where: str, what: str
+) -> Calibration:
+    """The setting for ``focal_length`` (mm): the one within ZOOM_TOLERANCE of it.
+
+    A file with one setting serves every focal length. ``where`` names the calibration
+    and ``what`` the focal length's source in the messages.
+
+    Raises
+    ------
+    InputError
+        Several settings and no focal length, or none within the tolerance (naming
+        the focal length and every setting).
+    """
+    if len(settings) == 1:
+        return settings[0]
+    known = ", ".join(f"{c.focal_length:g}" for c in settings) + " mm"
+    if focal_length is None:
+        raise InputError(
+            f"{where}: has zoom settings {known}: {what} has no focal length"
+            " (give --zoom F, or a capture whose metadata has it)"
+        )
+    near = [
+        c for c in settings if abs(c.focal_length - focal_length) <= ZOOM_TOLERANCE * c.focal_length
+    ]
+    if not near:
+        raise InputError(
+            f"{what}: focal length {focal_length:g} mm matches none of {where}'s zoom"
+            f" settings {known} (within {100 * ZOOM_TOLERANCE:g}%)"
+        )
+    return min(near, key=lambda c: abs(c.focal_length - focal_length))
 
 
 def info(path: str | os.PathLike[str]) -> str:
@@ -1229,5 +1462,19 @@ def info(path: str | os.PathLike[str]) -> str:
             else "none (format 1.0 file)",
         ),
     ]
+    others = [Calibration(**v) for v in header["settings"]]
+    if others:
+        listed = []
+        for c in [cal, *others]:
+            shared = c.warps is cal.warps or _same(c.warps, cal.warps)
+            z_c = f"Z_c {c.z_c:.4f} m" if c.metric else "relative depth"
+            listed.append(
+                f"{c.focal_length:g} mm ({z_c}, Z_b {c.z_b:g} m, warp maps"
+                f" {'shared' if shared else 'its own'})"
+            )
+        head.append(("zoom settings", "; ".join(listed)))
     width = max(len(k) for k, _ in head)
-    return "\n".join(f"{k:<{width}}  {v}" for k, v in head) + "\n\n" + cal.summary()
+    text = "\n".join(f"{k:<{width}}  {v}" for k, v in head) + "\n\n" + cal.summary()
+    for c in others:
+        text += f"\n\nzoom setting {c.focal_length:g} mm\n" + c.summary()
+    return text
