@@ -145,6 +145,28 @@ def test_triangulate_never_crashes(
 
 
 @SETTINGS
+@given(
+    data=st.data(),
+    h=st.integers(0, 6),
+    w=st.integers(0, 6),
+    c=st.integers(0, 5),
+    window=st.integers(0, 10),
+    iterations=st.integers(0, 3),
+)
+def test_btv_deblur_any_size_and_window(
+    data: st.DataObject, h: int, w: int, c: int, window: int, iterations: int
+) -> None:
+    finite = data.draw(st.booleans())
+    z = data.draw(_arrays(np.float32, (h, w, c), allow_special=not finite))
+    a = data.draw(hnp.arrays(np.float32, (h, w), elements=st.floats(0, 2, width=32)))
+    out = _run(core.btv_deblur, z, a, None, 0.6, 0.015, 0.7, window, iterations, 0.02, 0.01)
+    if out is not None:
+        assert out.shape == z.shape
+        if finite:
+            assert np.isfinite(out).all()
+
+
+@SETTINGS
 @given(data=st.data(), h=st.integers(0, 6), w=st.integers(0, 6))
 def test_data_weights_formula(data: st.DataObject, h: int, w: int) -> None:
     wsum = data.draw(_arrays(np.float32, (h, w)))
