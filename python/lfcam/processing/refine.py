@@ -42,7 +42,7 @@ class RefineParams:
     #: Truncation of the grey gradient difference (same units per px).
     trunc_gradient: float = 0.01
     #: Weight of the gradient term (the colour term weighs ``1 - alpha``).
-    alpha: float = 0.9
+    alpha: float = 0.7
     #: Guided filter radius (px) and regularisation (squared brightness units).
     radius: int = 4
     eps: float = 1e-4
