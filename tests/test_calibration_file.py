@@ -1107,3 +1107,15 @@ def test_file_hash_offset_and_open_files(good_file: Path) -> None:
         assert file_hash(fh, offset=512) == hashlib.sha256(data[512:]).hexdigest()
     # The seal in the user block is the hash of what follows it.
     assert data.startswith(b"lfcam-calibration sha256 " + file_hash(good_file, offset=512).encode())
+
+
+def test_format_1_0_file_that_hangs_hdf5(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A damaged unsealed file on which the HDF5 library itself hangs (found by fuzzing:
+    fuzz/fuzz_inputs.py) ends in a CalibrationError once the probe's time is up."""
+    from lfcam.calibration import file as calfile
+
+    monkeypatch.setattr(calfile, "_PROBE_TIMEOUT_S", 5.0)
+    path = Path(__file__).parent / "data" / "hdf5_hang_1_0.lfcal"
+    with pytest.raises(CalibrationError) as e:
+        Calibration.load(path)
+    assert str(e.value) == f"{path}: corrupt: reading it did not finish within 5 s"

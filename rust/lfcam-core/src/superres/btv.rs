@@ -351,8 +351,7 @@ fn ensure_diffs(job: &BtvStep<'_>, sc: &mut BtvScratch, y: usize) {
     let xrow = &job.x[y * row_len..(y + 1) * row_len];
     let planes = sc.diffs.claim(y);
     for (&(l, m, _), plane) in job.shifts.iter().zip(planes.chunks_exact_mut(row_len)) {
-        // Pixels xx with xx + l inside the row (|l| <= window < w checked by the caller
-        // or the span is empty).
+        // Pixels xx with xx + l inside the row (none when |l| >= w: the span is empty).
         let lo = ((-l).max(0) as usize).min(w);
         let hi = (w as i64 - l.max(0)).clamp(lo as i64, w as i64) as usize;
         if y + m >= h || lo >= hi {
@@ -468,6 +467,9 @@ fn btv_rows(job: &BtvStep<'_>, first: usize, out: &mut [f32]) -> Result<()> {
             // reg[xx] -= wt D_s(xx - l) for 0 <= xx - l < w.
             let lo = (l.max(0) as usize).min(w);
             let hi = (w as i64 + l.min(0)).clamp(lo as i64, w as i64) as usize;
+            if lo >= hi {
+                continue; // |l| >= w: the shifted row does not overlap this one
+            }
             let p0 = (lo as i64 - l) as usize * c;
             let p1 = (hi as i64 - l) as usize * c;
             for (o, &v) in sc.reg[lo * c..hi * c].iter_mut().zip(&prev[p0..p1]) {
@@ -718,6 +720,10 @@ mod tests {
             (5, 300, 4, 2.0, 1, 0.05, 4),
             (2, 3, 2, 0.0, 3, 0.01, 2),
             (1, 1, 3, 1.0, 1, 0.01, 1),
+            // Windows wider than the image: shifts that leave it contribute nothing.
+            (3, 3, 3, 0.5, 8, 0.01, 2),
+            (20, 2, 1, 0.6, 4, 0.01, 2),
+            (1, 5, 2, 0.6, 8, 0.0, 2),
         ] {
             let z: Vec<f32> = (0..h * w * c).map(|_| rnd()).collect();
             let a: Vec<f32> = (0..h * w).map(|_| 2.0 * rnd()).collect();
