@@ -323,6 +323,11 @@ def _add_calibrate(sub: Any) -> None:
         "--pattern-pitch", type=float, metavar="M", help="metres per pattern pixel on the board"
     )
     p.add_argument("--bayer", choices=("RGGB", "BGGR", "GRBG", "GBRG"), help="Bayer raw")
+    p.add_argument(
+        "--warps-per-setting",
+        action="store_true",
+        help="zoom settings: each keeps its own warp maps (default: shared where they agree)",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an existing CAMERA.lfcal")
     p.set_defaults(func=_cmd_calibrate)
 
@@ -342,6 +347,10 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     steps = ["layout", "scale", "warp", "depth"]
     t0 = time.perf_counter()
     with _progress(args, len(steps) + 3, "calibrate") as bar:
+        from .calibration.inputs import find_settings
+
+        if None not in find_settings(args.cal_dir):
+            return _calibrate_zoom(args, out, bar, t0)
         run = run_calibration(
             args.cal_dir,
             grid=args.grid,
@@ -373,6 +382,38 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
         )
     for k, p in paths.items():
         print(f"  {k:16} {p}")
+    return EXIT_OK
+
+
+def _calibrate_zoom(args: argparse.Namespace, out: Path, bar: Any, t0: float) -> int:
+    """``lfcam calibrate`` of a folder of zoom settings (``zoom_<f>mm/``)."""
+    from .calibration.zoom import run_zoom_calibration
+
+    zrun = run_zoom_calibration(
+        args.cal_dir,
+        share_warps=False if args.warps_per_setting else None,
+        grid=args.grid,
+        reference=args.reference,
+        reference_distance=args.reference_distance,
+        scale=args.scale,
+        z_c=args.z_c,
+        pattern_pitch=args.pattern_pitch,
+        bayer=args.bayer,
+        progress=bar,
+    )
+    paths = zrun.save(out)
+    print(f"calibrated {len(zrun.calibrations)} zoom settings in {time.perf_counter() - t0:.1f} s")
+    print("  focal length  Z_b, Z_c          warp maps")
+    for cal in zrun.calibrations:
+        z = cal.report.get("zoom", {})
+        diff = z.get("warp_difference_to_first")
+        src = z.get("warps_from_mm")
+        where = "own" if src == cal.focal_length else f"from {src:g} mm"
+        d = f" (differ by {diff['rms_px']:.3f} px rms)" if diff else ""
+        zc = f"{cal.z_c:.4f} m" if cal.metric else "unknown"
+        print(f"  {cal.focal_length:8g} mm   {cal.z_b:g} m, {zc:10}  {where}{d}")
+    for k, p in paths.items():
+        print(f"  {k:24} {p}")
     return EXIT_OK
 
 

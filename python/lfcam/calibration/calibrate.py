@@ -29,7 +29,7 @@ from ..kernels.flow import FlowParams
 from ..kernels.warp import remap
 from .file import Calibration
 from .geometric import coarse_homography, register_view
-from .inputs import CaptureReader, find_inputs, mean_capture
+from .inputs import CalibrationInputs, CaptureReader, find_inputs, mean_capture
 from .layout import find_layout
 from .parallax import (
     MAX_BOARD_RMS_PX,
@@ -205,6 +205,18 @@ class CalibrationRun:
         return paths
 
 
+def _finite_json(value: Any) -> Any:
+    """A JSON value with NaN and infinities as None (a standard error the fit could not
+    give, say)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, list):
+        return [_finite_json(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _finite_json(v) for k, v in value.items()}
+    return value
+
+
 def _fit_with_poses(
     start: dict[str, Any],
     measured: dict[float, ParallaxMeasurement],
@@ -366,14 +378,16 @@ def run_calibration(
     *,
     threads: int = 2,
     progress: Callable[[str], None] | None = None,
+    inputs: CalibrationInputs | None = None,
     **changes: Any,
 ) -> CalibrationRun:
-    """:func:`calibrate`, also returning what the report picture shows."""
+    """:func:`calibrate`, also returning what the report picture shows. ``inputs``: the
+    folder's files already found (a zoom setting's, :func:`find_settings`)."""
     say = progress or (lambda _msg: None)
     t_all = time.perf_counter()
     timings: dict[str, float] = {}
     p = (params or CalibrationParams()).replace(**changes)
-    inputs = find_inputs(cal_dir)
+    inputs = inputs if inputs is not None else find_inputs(cal_dir)
     p = p.merged(inputs.settings, str(inputs.root / "camera.toml"))
     grid = p.grid or DEFAULT_GRID
     R, C = grid
@@ -605,7 +619,9 @@ def run_calibration(
         },
         "timings_s": timings,
     }
-    report["depth_model"] = json.loads(json.dumps(report["depth_model"], default=float))
+    # NaN (an image-circle centre outside its warp map, a standard error the fit could
+    # not give) is None in the report.
+    report = _finite_json(json.loads(json.dumps(report, default=float)))
     cal = Calibration(
         grid=(R, C),
         reference=ref,

@@ -7,6 +7,14 @@ Folder layout::
     CAL_DIR/board_<distance>m/*    pattern captures at that distance (metres)
     CAL_DIR/camera.toml            optional: grid, reference, z_c, pattern_pitch, bayer,
                                    reference_distance, scale
+
+A zoom lens calibrated at several settings has one folder per setting, named by the
+front lens's focal length, each laid out as above; ``pattern.png``, ``white/`` and
+``camera.toml`` may instead be shared at the top (a setting's own ``camera.toml``
+overrides the shared one key by key)::
+
+    CAL_DIR/zoom_<f>mm/board_<distance>m/*   e.g. zoom_50mm/board_1.0m/
+    CAL_DIR/zoom_<f>mm/white/*               optional: this setting's white captures
 """
 
 from __future__ import annotations
@@ -29,9 +37,10 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover
     import tomli as tomllib
 
-__all__ = ["CalibrationInputs", "CaptureReader", "find_inputs", "mean_capture"]
+__all__ = ["CalibrationInputs", "CaptureReader", "find_inputs", "find_settings", "mean_capture"]
 
 _BOARD_RE = re.compile(r"^board_(.+)m$")
+_ZOOM_RE = re.compile(r"^zoom_(.+)mm$")
 
 
 @dataclass
@@ -49,8 +58,55 @@ def _images(folder: Path) -> list[Path]:
     return sorted(p for p in folder.iterdir() if is_image_file(p))
 
 
-def find_inputs(cal_dir: str | os.PathLike[str]) -> CalibrationInputs:
+def find_settings(cal_dir: str | os.PathLike[str]) -> dict[float | None, CalibrationInputs]:
+    """The optical settings of a calibration folder: focal length (mm) -> its inputs,
+    sorted; ``{None: ...}`` for a folder without ``zoom_<f>mm/`` settings.
+
+    Raises
+    ------
+    lfcam.InputError
+        Naming the missing or malformed file or folder.
+    """
+    root = Path(cal_dir)
+    if not root.is_dir():
+        return {None: find_inputs(root)}
+    found: dict[float, Path] = {}
+    for d in sorted(root.iterdir()):
+        if not d.is_dir() or not d.name.startswith("zoom"):
+            continue
+        m = _ZOOM_RE.match(d.name)
+        try:
+            if m is None:
+                raise ValueError
+            f = float(m.group(1))
+            if not (math.isfinite(f) and f > 0):
+                raise ValueError
+        except ValueError:
+            raise InputError(
+                f"{d}: cannot read a focal length from the folder name;"
+                " use zoom_<millimetres>mm, e.g. zoom_50mm"
+            ) from None
+        if f in found:
+            raise InputError(f"{d}: a second folder for focal length {f:g} mm (and {found[f]})")
+        found[f] = d
+    if not found:
+        return {None: find_inputs(root)}
+    boards = [d for d in root.iterdir() if d.is_dir() and d.name.startswith("board")]
+    if boards:
+        raise InputError(
+            f"{boards[0]}: board folders go inside a zoom_<f>mm/ setting folder when"
+            " there are settings"
+        )
+    return {f: find_inputs(found[f], shared=root) for f in sorted(found)}
+
+
+def find_inputs(
+    cal_dir: str | os.PathLike[str], *, shared: str | os.PathLike[str] | None = None
+) -> CalibrationInputs:
     """Check a calibration folder's layout and list its files.
+
+    ``shared``: the folder above a zoom setting's, where ``pattern.png``, ``white/`` and
+    ``camera.toml`` are found when the setting has none of its own.
 
     Raises
     ------
@@ -62,12 +118,17 @@ def find_inputs(cal_dir: str | os.PathLike[str]) -> CalibrationInputs:
         raise InputError(f"{root}: no such calibration folder")
     if not root.is_dir():
         raise InputError(f"{root}: not a folder")
+    top = Path(shared) if shared is not None else None
     pattern = root / "pattern.png"
+    if not pattern.is_file() and top is not None and (top / "pattern.png").is_file():
+        pattern = top / "pattern.png"
     if not pattern.is_file():
         raise InputError(
             f"{pattern}: the calibration pattern is missing (make it with `lfcam pattern`)"
         )
     wdir = root / "white"
+    if not wdir.is_dir() and top is not None and (top / "white").is_dir():
+        wdir = top / "white"
     if not wdir.is_dir():
         raise InputError(f"{wdir}: no white-target folder")
     white = _images(wdir)
@@ -98,11 +159,13 @@ def find_inputs(cal_dir: str | os.PathLike[str]) -> CalibrationInputs:
     if not boards:
         raise InputError(f"{root}: no board folder (board_<distance>m/, e.g. board_1.0m/)")
     settings: dict[str, Any] = {}
-    toml = root / "camera.toml"
-    if toml.is_file():
+    tomls = [t for t in ((top / "camera.toml") if top else None, root / "camera.toml") if t]
+    for toml in tomls:
+        if not toml.is_file():
+            continue
         try:
             with toml.open("rb") as fh:
-                settings = tomllib.load(fh)
+                table = tomllib.load(fh)
         except tomllib.TOMLDecodeError as exc:
             raise InputError(f"{toml}: not valid TOML: {exc}") from None
         known = {
@@ -114,12 +177,13 @@ def find_inputs(cal_dir: str | os.PathLike[str]) -> CalibrationInputs:
             "reference_distance",
             "scale",
         }
-        unknown = sorted(set(settings) - known)
+        unknown = sorted(set(table) - known)
         if unknown:
             raise InputError(
                 f"{toml}: unknown setting(s) {', '.join(unknown)};"
                 f" known: {', '.join(sorted(known))}"
             )
+        settings.update(table)
     return CalibrationInputs(root, pattern, white, boards, settings)
 
 
