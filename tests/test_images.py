@@ -3,8 +3,10 @@ or contents that must be refused with an InputError naming the file."""
 
 from __future__ import annotations
 
+import base64
 import os
 import struct
+import time
 import zlib
 from pathlib import Path
 
@@ -150,3 +152,24 @@ def test_missing_folder_and_special_files(tmp_path: Path) -> None:
         read_image(tmp_path / "fifo.png")
     with pytest.raises(InputError, match=r"unsupported image type .\.bmp."):
         read_image(tmp_path / "a.bmp")
+
+
+# A 333-byte TIFF (found by fuzz/fuzz_inputs.py) whose page links loop: building tifffile's
+# series over every page took minutes; only the first page is read.
+_LOOPING_TIFF = base64.b64decode(
+    "SUkqAAgAAAAPAAABBAABAAAAAAAAAAEBBAABAAAABhYBBAABAAAABgAAwgAAAAMBAwABAAAAAQAAAAYB"
+    "AwABAAAAAgAAAA4BAgABAAAAAAMAAAAWAQQAAQAAAAYAAAAXAQQAAQAAAPwAAAAaAQUAAQAAAOwHAgAA"
+    "AAAAAAAAABsBBQABAAAA9AAAABwBAwABAAAAPwEAAAAoAQNQiVBORw0KGgoAAAANSUhEUgDyAAcBBAAB"
+    "AAAABgAAABcBBAABAAAA/AAAABoBBQABAAAA7AcCAAAAAAAAAAAAGwEFAAEAAAD0AAAAHAEDAAEAAAAB"
+    "AAAbAQUAAQAAAPQAAAAcAQMAAQAAAAEAAAAoAQNQiVBORw0KGgoAAAANSUhEUgDyAAcAAAAGCAAAAAgN"
+    "Df8SRF1iYmdnbAAAAAYIAAAACA0N/xJEXWJiZ2dsbHFx"
+)
+
+
+def test_tiff_with_looping_pages_is_refused_quickly(tmp_path) -> None:
+    p = tmp_path / "loop.tif"
+    p.write_bytes(_LOOPING_TIFF)
+    t0 = time.perf_counter()
+    with pytest.raises(InputError, match=r"loop\.tif"):
+        lfcam.read_image(p)
+    assert time.perf_counter() - t0 < 5.0

@@ -113,9 +113,11 @@ def _decode_tiff(data: bytes, where: str) -> np.ndarray:
 
     try:
         with tifffile.TiffFile(io.BytesIO(data)) as tif:
-            if not tif.series:
+            # The first page only: building tifffile's series walks every page (a crafted
+            # file with endless page links takes minutes).
+            series = tif.pages.first
+            if series is None or not series.shape:
                 raise InputError(f"{where}: not a readable TIFF (no image in it)")
-            series = tif.series[0]
             shape = tuple(int(s) for s in series.shape)
             if len(shape) == 2:
                 shape = (*shape, 1)
