@@ -167,3 +167,64 @@ def test_captures_matching_no_setting_fail_alone(zoomcam, tmp_path, capsys) -> N
     # The good capture is done; the failed ones left nothing.
     assert _result(out / src.stem)["calibration_setting"]["focal_length_mm"] == 100.0
     assert sorted(p.name for p in out.iterdir()) == [src.stem]
+
+
+_FILES = ("depth.tiff", "confidence.tiff", "points.ply")
+
+
+def _same_pixels(a: Path, b: Path) -> None:
+    """Two batch outputs hold the same products and the same settings."""
+    for f in FOCAL_MM:
+        name = f"{SCENE}_{f:g}mm"
+        assert _result(a / name)["calibration_setting"] == _result(b / name)["calibration_setting"]
+        for file in _FILES[:2]:
+            got, want = read_image(a / name / file), read_image(b / name / file)
+            assert got.tobytes() == want.tobytes(), f"{name}/{file}"
+        assert (a / name / _FILES[2]).read_bytes() == (b / name / _FILES[2]).read_bytes()
+
+
+@pytest.fixture(scope="module")
+def mixed_reference(zoomcam, tmp_path_factory):
+    """The mixed folder processed in the calling process (``jobs=1``)."""
+    sim, cal_path = zoomcam
+    out = tmp_path_factory.mktemp("mixed") / "jobs1"
+    summary = lfcam.process_folder(sim.root / "captures", cal_path, out)
+    assert len(summary.done) == len(FOCAL_MM), summary.failed
+    return out
+
+
+def test_mixed_folder_the_same_with_two_worker_processes(zoomcam, mixed_reference, tmp_path):
+    sim, cal_path = zoomcam
+    summary = lfcam.process_folder(sim.root / "captures", cal_path, tmp_path / "out", jobs=2)
+    assert summary.workers == 2
+    assert len(summary.done) == len(FOCAL_MM), summary.failed
+    _same_pixels(tmp_path / "out", mixed_reference)
+
+
+def test_mixed_folder_on_a_cluster_loads_the_file_once(zoomcam, mixed_reference, tmp_path):
+    distributed = pytest.importorskip("distributed")
+    from lfcam.batch.cluster import calibration_loads
+
+    sim, cal_path = zoomcam
+    with (
+        distributed.LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0"
+        ) as cluster,
+        distributed.Client(cluster) as client,
+    ):
+        out = tmp_path / "by_path"
+        summary = lfcam.process_folder(sim.root / "captures", cal_path, out, client=client)
+        assert len(summary.done) == len(FOCAL_MM), summary.failed
+        _same_pixels(out, mixed_reference)
+        # Every setting came from one load of the file per worker that ran a capture.
+        sha = lfcam.io.file_hash(cal_path)
+        loads = [d for d in client.run(calibration_loads).values() if d]
+        assert loads
+        assert all(d == {sha: 1} for d in loads), loads
+        # A ZoomCalibration without a file is scattered, and each capture still gets
+        # its own setting.
+        zoom = lfcam.ZoomCalibration.load(cal_path)
+        out = tmp_path / "scattered"
+        summary = lfcam.process_folder(sim.root / "captures", zoom, out, client=client)
+        assert len(summary.done) == len(FOCAL_MM), summary.failed
+        _same_pixels(out, mixed_reference)
