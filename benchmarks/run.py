@@ -360,7 +360,12 @@ def plane_sweep_vs_numpy(size: str) -> Case:
     offsets = np.array([[-(c - 1), -(r - 1)] for r, c in grid], np.float64)
     views = np.stack(
         [
-            cv2.remap(tex, xx + 20 - o[0] * s_true, yy + 20 - o[1] * s_true, cv2.INTER_LINEAR)
+            cv2.remap(
+                tex,
+                (xx + 20 - o[0] * s_true).astype(np.float32),
+                (yy + 20 - o[1] * s_true).astype(np.float32),
+                cv2.INTER_LINEAR,
+            )
             for o in offsets
         ]
     )

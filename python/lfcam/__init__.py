@@ -14,7 +14,13 @@ map"): :mod:`lfcam.io` and :mod:`lfcam.kernels` <- :mod:`lfcam.calibration` <-
 from lfcam._build import build_info
 from lfcam._lfcam import __version__, get_num_threads, set_num_threads
 from lfcam.batch import BatchSummary, ProcessOptions, process_folder
-from lfcam.calibration import Calibration, CalibrationParams, calibrate, make_pattern
+from lfcam.calibration import (
+    Calibration,
+    CalibrationParams,
+    ZoomCalibration,
+    calibrate,
+    make_pattern,
+)
 from lfcam.errors import (
     CalibrationError,
     InputError,
@@ -70,6 +76,7 @@ __all__ = [
     "SuperResParams",
     "TriangulationParams",
     "TriangulationResult",
+    "ZoomCalibration",
     "__version__",
     "all_in_focus",
     "build_info",

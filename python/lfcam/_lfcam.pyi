@@ -245,5 +245,6 @@ def fit_board_tilts(
     centres: NDArray[np.float64] | None = None,
     centres_weight: float = 0.0,
     fit_reference: bool = False,
+    robust: bool = False,
 ) -> dict[str, Any]:
     """Joint fit of ``o_i``, ``Z_c`` and each board's tilt to parallax samples."""

@@ -464,6 +464,7 @@ def _add_process(sub: Any) -> None:
             "lfcam process capture.png -c camera.lfcal -o out/ --mesh --novel-view 0.01,0,0",
             "lfcam process captures/ -c camera.lfcal -o out/ --frame full --overwrite",
             "lfcam process captures/ -c camera.lfcal -o out/ --cluster slurm:4",
+            "lfcam process captures/ -c zoom.lfcal -o out/ --zoom 75",
         ],
         help="depth (and more) for raw captures",
         description=(
@@ -474,8 +475,12 @@ def _add_process(sub: Any) -> None:
             "and result.json. Images are in the reference view's rectified frame, cropped "
             "to the part the reference view sees (--frame full: uncropped); result.json "
             "gives the crop offset, and each TIFF says what it holds in its description "
-            "(docs/design.md, 'Capture outputs'). Complete outputs are skipped unless "
-            "--overwrite. A capture that fails is reported and skipped; "
+            "(docs/design.md, 'Capture outputs'). A calibration of several zoom settings "
+            "gives each capture the setting its EXIF focal length matches within 2% "
+            "(--zoom F: the setting of F for every capture); result.json records it. "
+            "Complete outputs are skipped unless "
+            "--overwrite. A capture that fails (also one whose focal length matches no "
+            "setting, or is unknown) is reported and skipped; "
             f"the exit code is then {EXIT_PARTIAL}."
         ),
     )
@@ -490,6 +495,13 @@ def _add_process(sub: Any) -> None:
     )
     p.add_argument(
         "-o", "--output", type=Path, required=True, metavar="OUT_DIR", help="output folder"
+    )
+    p.add_argument(
+        "--zoom",
+        type=float,
+        metavar="F",
+        help="the front lens's focal length in mm for every capture: picks the "
+        "calibration's zoom setting within 2%% (default: each capture's EXIF focal length)",
     )
     p.add_argument(
         "--jobs",
@@ -567,8 +579,9 @@ def _degenerate_warning(result_json: Path) -> str | None:
         return None
 
 
-def _novel_options(args: argparse.Namespace, cal: Any) -> Any:
-    """--mesh / --novel-view / --orbit as :class:`lfcam.outputs.NovelViewOptions`."""
+def _novel_options(args: argparse.Namespace, settings: Sequence[Any]) -> Any:
+    """--mesh / --novel-view / --orbit as :class:`lfcam.outputs.NovelViewOptions`, for
+    captures calibrated by any of ``settings``."""
     import math
 
     from .outputs import NovelViewOptions
@@ -583,7 +596,9 @@ def _novel_options(args: argparse.Namespace, cal: Any) -> Any:
         except InputError as exc:
             raise InputError(f"--novel-view: {exc}") from None
     opts = NovelViewOptions(mesh=args.mesh, pose=pose, orbit=args.orbit)
-    if (pose is not None or opts.orbit) and not (cal.metric and math.isfinite(cal.pattern_pitch)):
+    if (pose is not None or opts.orbit) and not all(
+        cal.metric and math.isfinite(cal.pattern_pitch) for cal in settings
+    ):
         raise InputError(
             "--novel-view/--orbit: need a metric calibration with a known pattern pitch"
         )
@@ -592,7 +607,8 @@ def _novel_options(args: argparse.Namespace, cal: Any) -> Any:
 
 def _cmd_process(args: argparse.Namespace) -> int:
     from .batch import ProcessOptions, process_folder
-    from .calibration import Calibration
+    from .calibration import ZoomCalibration
+    from .calibration.settings import check_focal_length
 
     if not 1 <= args.jobs <= MAX_JOBS:
         raise InputError(f"--jobs: expected 1 to {MAX_JOBS}, got {args.jobs}")
@@ -601,20 +617,31 @@ def _cmd_process(args: argparse.Namespace) -> int:
     _check_output_folder(args.output, "-o")
     if args.refocus and not all(math.isfinite(z) and z > 0 for z in args.refocus):
         raise InputError(f"--refocus: expected finite distances > 0 m, got {list(args.refocus)}")
-    cal = Calibration.load(args.calibration)
-    if args.refocus and cal.metric:
-        bad = [z for z in args.refocus if not z > cal.z_c]
-        if bad:
-            raise InputError(f"--refocus: distances must be beyond Z_c = {cal.z_c:.3f} m: {bad}")
-    elif args.refocus:
-        raise InputError("--refocus: the calibration is relative (no Z_c): no metric focus")
+    if args.zoom is not None:
+        check_focal_length(args.zoom, "--zoom")
+    zoom = ZoomCalibration.load(args.calibration)
+    # The settings captures may use: --zoom's, else any.
+    settings = zoom.settings if args.zoom is None else (zoom.select(args.zoom, "--zoom"),)
+    for cal in settings:
+        at = f" ({cal.focal_length:g} mm setting)" if math.isfinite(cal.focal_length) else ""
+        if args.refocus and cal.metric:
+            bad = [z for z in args.refocus if not z > cal.z_c]
+            if bad:
+                raise InputError(
+                    f"--refocus: distances must be beyond Z_c = {cal.z_c:.3f} m{at}: {bad}"
+                )
+        elif args.refocus:
+            raise InputError(
+                f"--refocus: the calibration{at} is relative (no Z_c): no metric focus"
+            )
     options = ProcessOptions(
         save_views=args.save_views,
         superres=args.superres,
         refocus=tuple(args.refocus or ()),
-        novel=_novel_options(args, cal),
+        novel=_novel_options(args, settings),
         overwrite=args.overwrite,
         frame=args.frame,
+        focal_length=args.zoom,
     )
     if args.cluster is not None and args.jobs != 1:
         raise InputError("--jobs: not with --cluster (the cluster's workers run the captures)")

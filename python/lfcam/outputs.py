@@ -238,7 +238,8 @@ def write_capture(
     it asks for (:func:`write_novel_views`, in the whole rectified frame).
 
     Images are cut to ``frame`` (:func:`output_frame`; ``result.json`` records the
-    crop offset); points keep their positions. PNGs are sRGB-encoded and say so; each
+    crop offset, and ``calibration_setting`` the zoom setting ``result`` used, which
+    ``cal`` must be); points keep their positions. PNGs are sRGB-encoded and say so; each
     TIFF's ImageDescription is JSON: quantity, unit, frame and the calibration's
     SHA-256 (``extra["calibration_sha256"]``, when given).
     """
@@ -338,6 +339,11 @@ def write_capture(
         info = {
             "source": result.source,
             "capture": result.metadata.to_dict(),
+            **(
+                {"calibration_setting": result.setting.to_dict()}
+                if result.setting is not None
+                else {}
+            ),
             "depth_units": z_unit,
             "xy_units": units,
             "points_frame": "front lens: X right, Y down, Z forward",

@@ -15,8 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._validate import check_instance
-from .calibration import Calibration
+from .calibration import Calibration, SettingChoice, ZoomCalibration
 from .io import (
     MAX_IMAGE_FILE_BYTES,
     CaptureMetadata,
@@ -46,12 +45,16 @@ class CaptureResult:
     refocused: dict[float, np.ndarray] = field(default_factory=dict)
     #: What the capture's file says about how it was taken (EXIF; empty for arrays).
     metadata: CaptureMetadata = field(default_factory=CaptureMetadata)
+    #: The calibration setting used and why (``setting.calibration`` is the camera the
+    #: views, depth and products are in).
+    setting: SettingChoice | None = None
 
 
 def process_capture(
     raw_or_path: np.ndarray | str | os.PathLike[str],
-    cal: Calibration,
+    cal: Calibration | ZoomCalibration,
     *,
+    focal_length: float | None = None,
     interp: str = "bilinear",
     threads: int = 2,
     superres: int | None = None,
@@ -64,8 +67,13 @@ def process_capture(
     ----------
     raw_or_path : array or path
         The raw frame, or its file (PNG, TIFF, JPEG, camera raw).
-    cal : Calibration
-        The camera.
+    cal : Calibration or ZoomCalibration
+        The camera; a :class:`ZoomCalibration` of several zoom settings gives the
+        setting whose focal length matches the capture's (``focal_length``, else the
+        file's EXIF focal length) within 2%.
+    focal_length : float, optional
+        The front lens's focal length, mm: picks the zoom setting, overriding the
+        capture's metadata (``lfcam process --zoom``).
     interp : str
         Rectification resampling.
     threads : int
@@ -82,29 +90,47 @@ def process_capture(
     -------
     CaptureResult
         ``views`` (rectified), ``depth`` (a :class:`DepthResult`), ``timings``,
-        ``metadata`` (the file's focal length, exposure, ISO, aperture, camera).
+        ``metadata`` (the file's focal length, exposure, ISO, aperture, camera),
+        ``setting`` (the calibration setting used).
+
+    Raises
+    ------
+    InputError
+        Besides a bad capture: a focal length (given, or the capture's) that matches
+        none of ``cal``'s zoom settings, or several settings and no focal length known,
+        naming the focal length and the settings.
     """
-    check_instance(cal, Calibration, "cal")
+    zoom = ZoomCalibration.of(cal)
+    if focal_length is not None:
+        zoom.select(focal_length, "focal_length")  # a bad one is refused before reading
     t0 = time.perf_counter()
     source = None
     metadata = CaptureMetadata()
+    # Every setting shares the raw frame's layout and Bayer pattern.
+    bayer = zoom.settings[0].bayer
     if isinstance(raw_or_path, (str, os.PathLike)):
         source = str(raw_or_path)
         # Pixels and metadata from one read of the file (read_raw words any error).
         data = None
         if is_image_file(Path(raw_or_path)):
             data = read_file_bytes(raw_or_path, MAX_IMAGE_FILE_BYTES)
-        raw = read_raw(Path(raw_or_path), cal.bayer, data=data)
+        raw = read_raw(Path(raw_or_path), bayer, data=data)
         metadata = read_metadata(Path(raw_or_path), data=data)
     else:
         raw = np.asarray(raw_or_path)
+    setting = zoom.choose(
+        focal_length,
+        capture_focal_length=metadata.focal_length_mm,
+        capture=source or "raw_or_path",
+    )
+    cal = setting.calibration
     t1 = time.perf_counter()
     views = rectify(raw, cal, interp=interp)
     t2 = time.perf_counter()
     res = estimate_depth(views, cal, depth, threads=threads)
     t3 = time.perf_counter()
     timings = {"read": t1 - t0, "rectify": t2 - t1, **res.timings}
-    out = CaptureResult(views, res, source, timings, metadata=metadata)
+    out = CaptureResult(views, res, source, timings, metadata=metadata, setting=setting)
     if superres is not None or refocus:
         if superres is not None:
             out.superres = super_resolve(raw, cal, res, superres)

@@ -18,7 +18,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
-from ..calibration import Calibration
+from ..calibration import Calibration, ZoomCalibration
 from ..errors import InputError
 from .task import (
     CaptureOutcome,
@@ -190,8 +190,10 @@ def _setup_worker() -> tuple[int, int]:
     return pool, max(1, pool // nthreads)
 
 
-def _worker_calibration(cal: Calibration | str, sha256: str | None) -> Calibration:
-    if isinstance(cal, Calibration):
+def _worker_calibration(
+    cal: Calibration | ZoomCalibration | str, sha256: str | None
+) -> Calibration | ZoomCalibration:
+    if isinstance(cal, (Calibration, ZoomCalibration)):
         return cal
     key = sha256 or cal
     with _lock:
@@ -208,7 +210,7 @@ def calibration_loads() -> dict[str, int]:
 
 def _cluster_task(
     task: CaptureTask,
-    cal: Calibration | str,
+    cal: Calibration | ZoomCalibration | str,
     sha256: str | None,
     options: ProcessOptions,
     extra: dict[str, Any],
@@ -252,7 +254,7 @@ def cluster_shape(client: Any, timeout: float = WORKER_TIMEOUT_S) -> tuple[int, 
 def run_on_cluster(
     client: Any,
     jobs: Sequence[tuple[CaptureTask, bool]],
-    cal: Calibration | str,
+    cal: Calibration | ZoomCalibration | str,
     sha256: str | None,
     options: ProcessOptions,
     extra: dict[str, Any],
@@ -263,7 +265,7 @@ def run_on_cluster(
     """
     distributed = import_distributed()
     ref: Any = cal
-    if isinstance(cal, Calibration):
+    if isinstance(cal, (Calibration, ZoomCalibration)):
         ref = client.scatter(cal, broadcast=True, hash=False)
     futures = {
         client.submit(_cluster_task, task, ref, sha256, options, extra, wait, pure=False): k

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from ..calibration import Calibration
+from ..calibration import Calibration, ZoomCalibration
 from ..errors import InputError
 from ..io import file_hash, is_image_file
 from ..io.lock import remove_stale
@@ -126,17 +126,18 @@ def find_captures(
     return tasks
 
 
-# The calling process's or a pool worker's state: the calibration, loaded once.
+# The calling process's or a pool worker's state: the calibration (every zoom
+# setting), loaded once.
 @dataclass(frozen=True)
 class _WorkerState:
-    cal: Calibration
+    cal: Calibration | ZoomCalibration
     options: ProcessOptions
     extra: dict[str, Any]
     threads: int
 
 
 def _init_worker(
-    cal: Calibration | str,
+    cal: Calibration | ZoomCalibration | str,
     sha256: str | None,
     options: ProcessOptions,
     extra: dict[str, Any],
@@ -148,7 +149,7 @@ def _init_worker(
 
     set_num_threads(threads)
     cv2.setNumThreads(threads)
-    if not isinstance(cal, Calibration):
+    if not isinstance(cal, (Calibration, ZoomCalibration)):
         cal = load_calibration(cal, sha256)
     return _WorkerState(cal, options, extra, threads)
 
@@ -162,7 +163,7 @@ def _run(state: _WorkerState, job: tuple[CaptureTask, bool]) -> CaptureOutcome:
 
 def process_folder(
     inputs: str | os.PathLike[str] | Sequence[str | os.PathLike[str]],
-    cal: Calibration | str | os.PathLike[str],
+    cal: Calibration | ZoomCalibration | str | os.PathLike[str],
     out_dir: str | os.PathLike[str],
     *,
     client: Any = None,
@@ -185,9 +186,12 @@ def process_folder(
     ----------
     inputs : path-like or sequence of path-like
         Raw captures, or folders searched recursively for them.
-    cal : Calibration or path-like
+    cal : Calibration, ZoomCalibration or path-like
         The camera; a path (``.lfcal``) is what worker processes load, once each, after
-        checking its sha256, and what ``result.json`` records.
+        checking its sha256, and what ``result.json`` records. Of several zoom
+        settings, each capture gets the one its focal length picks (the option
+        ``focal_length``, else its metadata, within 2%); a capture that matches none,
+        or has no focal length, fails with a reason naming it and the settings.
     out_dir : path-like
         The output folder (made if missing).
     client : dask.distributed.Client, optional
@@ -236,7 +240,8 @@ def process_folder(
         raise InputError(f"threads: must be an integer >= 1, got {threads!r}")
     cal_path: str | None = None
     sha256: str | None = None
-    if isinstance(cal, Calibration):
+    calibration: Calibration | ZoomCalibration
+    if isinstance(cal, (Calibration, ZoomCalibration)):
         calibration = cal
     else:
         cal_path = str(cal)

@@ -15,7 +15,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..calibration import Calibration
+from ..calibration import Calibration, ZoomCalibration
+from ..calibration.settings import check_focal_length
 from ..errors import InputError, LfcamError
 from ..io.lock import LockBusy, path_lock
 from ..kernels import INTERPOLATIONS
@@ -56,6 +57,10 @@ class ProcessOptions:
     frame : {'valid', 'full'}
         The image outputs' frame (:func:`lfcam.outputs.output_frame`): cut to the
         reference view's valid box, or the calibration's whole rectified frame.
+    focal_length : float or None
+        The front lens's focal length (mm) of every capture: picks the calibration's
+        zoom setting, overriding each capture's metadata (``--zoom``); None: each
+        capture's own (:meth:`lfcam.ZoomCalibration.choose`).
     """
 
     save_views: bool = False
@@ -65,6 +70,7 @@ class ProcessOptions:
     overwrite: bool = False
     interp: str = "bilinear"
     frame: str = "valid"
+    focal_length: float | None = None
 
     def check_values(self) -> None:
         """Raise :class:`~lfcam.InputError` naming a malformed option (no calibration
@@ -82,23 +88,41 @@ class ProcessOptions:
             raise InputError(f"interp: expected one of {choices}, got {self.interp!r}")
         if not isinstance(self.refocus, tuple):
             raise InputError(f"refocus: expected a tuple of distances, got {self.refocus!r}")
+        if self.focal_length is not None:
+            check_focal_length(self.focal_length, "focal_length")
 
-    def check(self, cal: Calibration) -> None:
+    def settings(self, cal: Calibration | ZoomCalibration) -> tuple[Calibration, ...]:
+        """The settings of ``cal`` that captures may use: the one ``focal_length``
+        picks, else all (an :class:`~lfcam.InputError` if it picks none)."""
+        zoom = ZoomCalibration.of(cal)
+        if self.focal_length is None:
+            return zoom.settings
+        return (zoom.select(self.focal_length, "focal_length"),)
+
+    def check(self, cal: Calibration | ZoomCalibration) -> None:
         """Raise :class:`~lfcam.InputError` naming the option that is malformed or that
-        ``cal`` cannot serve."""
+        ``cal`` (each setting captures may use) cannot serve."""
         self.check_values()
-        if self.refocus and not cal.metric:
-            raise InputError("refocus: the calibration is relative (no Z_c): no metric focus")
-        bad = [z for z in self.refocus if not (math.isfinite(z) and z > cal.z_c)]
-        if bad:
-            raise InputError(f"refocus: distances must be beyond Z_c = {cal.z_c:.3f} m: {bad}")
-        n = self.novel
-        if (
-            n is not None
-            and (n.pose is not None or n.orbit)
-            and not (cal.metric and math.isfinite(cal.pattern_pitch))
-        ):
-            raise InputError("novel: views need a metric calibration with a known pattern pitch")
+        for c in self.settings(cal):
+            where = f" ({c.focal_length:g} mm setting)" if math.isfinite(c.focal_length) else ""
+            if self.refocus and not c.metric:
+                raise InputError(
+                    f"refocus: the calibration{where} is relative (no Z_c): no metric focus"
+                )
+            bad = [z for z in self.refocus if not (math.isfinite(z) and z > c.z_c)]
+            if bad:
+                raise InputError(
+                    f"refocus: distances must be beyond Z_c = {c.z_c:.3f} m{where}: {bad}"
+                )
+            n = self.novel
+            if (
+                n is not None
+                and (n.pose is not None or n.orbit)
+                and not (c.metric and math.isfinite(c.pattern_pitch))
+            ):
+                raise InputError(
+                    f"novel: views need a metric calibration{where} with a known pattern pitch"
+                )
 
 
 @dataclass(frozen=True)
@@ -141,14 +165,15 @@ def is_complete(out: str | os.PathLike[str]) -> bool:
     return (Path(out) / "result.json").is_file()
 
 
-def load_calibration(path: str | os.PathLike[str], sha256: str | None) -> Calibration:
-    """Load a calibration, refusing it if its sha256 is not ``sha256`` (when given).
+def load_calibration(path: str | os.PathLike[str], sha256: str | None) -> ZoomCalibration:
+    """Load a calibration (every zoom setting, each once), refusing it if its sha256 is
+    not ``sha256`` (when given).
 
     A worker loads the batch's calibration once; the check catches a file replaced
     since the batch started, or a shared path that shows another file on this host.
     The file hashed is the file parsed (:meth:`Calibration.load`).
     """
-    return Calibration.load(path, sha256=sha256)
+    return ZoomCalibration.load(path, sha256=sha256)
 
 
 def failure_reason(exc: BaseException) -> str:
@@ -163,7 +188,7 @@ def failure_reason(exc: BaseException) -> str:
 
 def run_capture(
     task: CaptureTask,
-    cal: Calibration,
+    cal: Calibration | ZoomCalibration,
     options: ProcessOptions,
     extra: dict[str, Any],
     *,
@@ -175,7 +200,8 @@ def run_capture(
     Never raises for the capture's sake: an exception of any type is a ``"failed"``
     outcome with its reason. Without ``wait``, a folder locked by another run is a
     ``"busy"`` outcome at once; a folder found complete under the lock is ``"skipped"``
-    (unless ``options.overwrite``).
+    (unless ``options.overwrite``). The capture's zoom setting is chosen by
+    :func:`lfcam.process_capture` (``options.focal_length``, else its metadata).
     """
     t0 = time.perf_counter()
 
@@ -190,15 +216,17 @@ def run_capture(
             res = process_capture(
                 task.source,
                 cal,
+                focal_length=options.focal_length,
                 interp=options.interp,
                 threads=threads,
                 superres=options.superres,
                 refocus=options.refocus,
             )
+            assert res.setting is not None
             write_capture(
                 task.out,
                 res,
-                cal,
+                res.setting.calibration,
                 extra=extra,
                 save_views=options.save_views,
                 novel=options.novel,

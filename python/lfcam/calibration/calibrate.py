@@ -259,7 +259,7 @@ def _fit_with_poses(
             " disagree with the other distances' (is the distance in the folder name"
             " right, and did the board stay still and flat?)"
         )
-    for z in sorted(gradients):
+    for k, z in enumerate(poses["zs"]):
         change = depth_change(gradients[z], centre, shape)
         slope = None if rect_pitch is None else tilt_degrees(gradients[z], z_b, z_c, rect_pitch)
         too_much = (
@@ -284,6 +284,7 @@ def _fit_with_poses(
             "slope_deg": slope,
             "depth_change_across_frame": change,
             "residual_rms_px": rms[z],
+            "cells_downweighted": float(poses["board_downweighted"][k]),
         }
     zs = np.array(poses["zs"])
     s = (zs - z_b) / (zs - z_c)

@@ -1400,8 +1400,11 @@ def select_setting(
 ) -> Calibration:
     """The setting for ``focal_length`` (mm): the one within ZOOM_TOLERANCE of it.
 
-    A file with one setting serves every focal length. ``where`` names the calibration
-    and ``what`` the focal length's source in the messages.
+    A file with one setting and no focal length (calibrated without zoom settings)
+    serves every focal length; one setting with a focal length serves that one, and
+    any setting serves an unknown focal length only when it is the file's only one.
+    ``where`` names the calibration and ``what`` the focal length's source in the
+    messages.
 
     Raises
     ------
@@ -1409,13 +1412,13 @@ def select_setting(
         Several settings and no focal length, or none within the tolerance (naming
         the focal length and every setting).
     """
-    if len(settings) == 1:
+    if len(settings) == 1 and (focal_length is None or math.isnan(settings[0].focal_length)):
         return settings[0]
     known = ", ".join(f"{c.focal_length:g}" for c in settings) + " mm"
     if focal_length is None:
         raise InputError(
             f"{where}: has zoom settings {known}: {what} has no focal length"
-            " (give --zoom F, or a capture whose metadata has it)"
+            " (give --zoom F or focal_length=F, or a capture whose metadata has it)"
         )
     near = [
         c for c in settings if abs(c.focal_length - focal_length) <= ZOOM_TOLERANCE * c.focal_length

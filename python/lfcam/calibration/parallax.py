@@ -306,15 +306,18 @@ def fit_board_poses(
     Z_c``): the board is ``w = w_k + g . (x - centre)`` in units of ``Z_b - Z_c``
     (docs/design.md, "Parallax fit"). The reference board is the frame's
     fronto-parallel plane: the others' tilts are relative to it (its own shows only
-    through an effect too weak to measure under the flow's noise).
+    through an effect too weak to measure under the flow's noise). The cells are
+    weighted by a Cauchy loss (a cell whose flow locked onto a wrong match would tilt a
+    least-squares fit, and with the tilt ``o_i`` and ``Z_c``).
 
     Returns
     -------
     dict
         ``z_c``, ``offsets`` ``(N, 2)``, their standard errors ``z_c_se``,
         ``offsets_se``, ``gradient_ref`` (the reference board), ``gradients`` (one per
-        other board, ``zs`` order), their standard errors, ``board_rms_px``, ``rms_px``,
-        ``iterations``, ``zs``.
+        other board, ``zs`` order), their standard errors, ``board_rms_px``,
+        ``board_downweighted`` (the share of each board's cells the robust loss weighs
+        at less than half), ``rms_px``, ``iterations``, ``zs``.
     """
     zs = sorted(measured)
     board, view, pos, par = [], [], [], []
@@ -348,6 +351,7 @@ def fit_board_poses(
         float(prior),
         None if centres_rect is None else np.ascontiguousarray(centres_rect, np.float64),
         float(per_view),
+        robust=True,
     )
     fit["offsets"] = np.asarray(fit["offsets"])
     fit["offsets_se"] = np.asarray(fit["offsets_se"])

@@ -15,7 +15,10 @@
 //!
 //! Solved by Levenberg-Marquardt on the normal equations (faer's Cholesky), with a
 //! numerical Jacobian (central differences); the standard errors come from the inverse
-//! of the normal matrix at the solution.
+//! of the normal matrix at the solution. With [`TiltProblem::robust`], the samples are
+//! reweighted by a Cauchy loss (iteratively reweighted least squares around the
+//! Levenberg-Marquardt solve): a cell whose flow locked onto a wrong match pulls the
+//! least-squares fit of the gradients, and through them of `o_i` and `Z_c`.
 
 use faer::linalg::solvers::{DenseSolveCore, Solve};
 use faer::{Mat, Side};
@@ -28,6 +31,12 @@ const LENGTH_PX: f64 = 1000.0;
 /// Levenberg-Marquardt iterations (at most) and the relative cost change that ends them.
 const MAX_ITERATIONS: usize = 100;
 const COST_TOLERANCE: f64 = 1e-13;
+/// Robust reweighting: the Cauchy loss's scale is this many times the median miss of the
+/// samples (about 3 standard deviations of one component for Gaussian noise); at most
+/// MAX_REWEIGHTS rounds, ending when no weight changes by more than WEIGHT_TOLERANCE.
+const CAUCHY_SCALE: f64 = 3.5;
+const MAX_REWEIGHTS: usize = 10;
+const WEIGHT_TOLERANCE: f64 = 1e-3;
 
 /// The parallax measurements: sample `j` is view `view[j]`'s median shift `parallax[j]`
 /// (rectified px) of board `board[j]` over a patch of the reference view centred at
@@ -70,6 +79,9 @@ pub struct TiltProblem {
     /// real flow noise it is poorly determined; without it the other boards' gradients
     /// are relative to the reference board's.
     pub fit_reference: bool,
+    /// Reweight the samples by a Cauchy loss (scale from their median miss) instead of
+    /// plain least squares.
+    pub robust: bool,
 }
 
 /// The solution and its uncertainty.
@@ -91,11 +103,15 @@ pub struct TiltFit {
     pub gradients: Vec<[f64; 2]>,
     /// Standard errors of `gradients`.
     pub gradients_se: Vec<[f64; 2]>,
-    /// Weighted RMS residual per board (px), in the order of `distances`.
+    /// Weighted RMS residual per board (px), in the order of `distances` (weights
+    /// including the robust ones).
     pub board_rms: Vec<f64>,
+    /// Share of each board's samples the robust loss weighs at less than half (they miss
+    /// the model by more than the Cauchy scale); zero without `robust`.
+    pub board_downweighted: Vec<f64>,
     /// Weighted RMS residual of all samples (px).
     pub rms: f64,
-    /// Iterations taken.
+    /// Levenberg-Marquardt iterations taken, over all reweighting rounds.
     pub iterations: usize,
 }
 
@@ -154,16 +170,20 @@ impl Layout {
     }
 }
 
-/// Residuals `sqrt(weight) (measured - model)` of every equation, in a fixed order:
-/// samples (x, y), then the centre equations, then the gradient priors.
-fn residuals(
+/// Sample `j`'s miss `measured - model` (px), or None past the end of the samples.
+fn sample_miss(
     prob: &TiltProblem,
     data: &ParallaxSamples<'_>,
     lay: &Layout,
     theta: &[f64],
-    out: &mut Vec<f64>,
-) {
-    out.clear();
+    j: usize,
+) -> Option<[f64; 2]> {
+    let (&k, &i, p, m) = (
+        data.board.get(j)?,
+        data.view.get(j)?,
+        data.pos.get(j)?,
+        data.parallax.get(j)?,
+    );
     let z_c = theta.get(lay.z_c_index()).copied().unwrap_or(f64::NAN);
     let h = prob.z_b - z_c;
     // Unfitted, the reference board is the frame's fronto-parallel plane (the gauge).
@@ -173,26 +193,36 @@ fn residuals(
         [0.0; 2]
     };
     let s = 1.0 / LENGTH_PX;
+    let z_k = prob.distances.get(k).copied().unwrap_or(f64::NAN);
+    let g_k = Layout::pair(theta, lay.g_index(k));
+    let o = lay.offset(theta, i);
+    let rel = [(p[0] - prob.centre[0]) * s, (p[1] - prob.centre[1]) * s];
+    let model = shift(rel, [o[0] * s, o[1] * s], (z_k - z_c) / h, g_k, g_b);
+    Some([m[0] - model[0] * LENGTH_PX, m[1] - model[1] * LENGTH_PX])
+}
+
+/// Residuals `sqrt(weight robust) (measured - model)` of every equation, in a fixed
+/// order: samples (x, y), then the centre equations, then the gradient priors.
+fn residuals(
+    prob: &TiltProblem,
+    data: &ParallaxSamples<'_>,
+    lay: &Layout,
+    theta: &[f64],
+    robust: &[f64],
+    out: &mut Vec<f64>,
+) {
+    out.clear();
     for j in 0..data.view.len() {
-        let (Some(&k), Some(&i), Some(p), Some(m), Some(&wt)) = (
-            data.board.get(j),
-            data.view.get(j),
-            data.pos.get(j),
-            data.parallax.get(j),
-            data.weight.get(j),
-        ) else {
+        let (Some(miss), Some(&wt)) = (sample_miss(prob, data, lay, theta, j), data.weight.get(j))
+        else {
             break;
         };
-        let z_k = prob.distances.get(k).copied().unwrap_or(f64::NAN);
-        let g_k = Layout::pair(theta, lay.g_index(k));
-        let o = lay.offset(theta, i);
-        let rel = [(p[0] - prob.centre[0]) * s, (p[1] - prob.centre[1]) * s];
-        let model = shift(rel, [o[0] * s, o[1] * s], (z_k - z_c) / h, g_k, g_b);
-        let sw = wt.sqrt();
-        out.push(sw * (m[0] - model[0] * LENGTH_PX));
-        out.push(sw * (m[1] - model[1] * LENGTH_PX));
+        let sw = (wt * robust.get(j).copied().unwrap_or(1.0)).sqrt();
+        out.push(sw * miss[0]);
+        out.push(sw * miss[1]);
     }
     if let Some((d, wt)) = &prob.centres {
+        let z_c = theta.get(lay.z_c_index()).copied().unwrap_or(f64::NAN);
         let sw = wt.sqrt();
         let r = prob.z_b / z_c;
         for (i, di) in d.iter().enumerate() {
@@ -206,6 +236,37 @@ fn residuals(
     for k in lay.g_ref_index()..lay.n_params() {
         out.push(theta.get(k).copied().unwrap_or(0.0) * inv);
     }
+}
+
+/// Cauchy weights of the samples at `theta`, their scale CAUCHY_SCALE times the median
+/// miss of the samples with a positive weight (all 1 when that median is 0: exact data).
+fn cauchy_weights(
+    prob: &TiltProblem,
+    data: &ParallaxSamples<'_>,
+    lay: &Layout,
+    theta: &[f64],
+) -> Vec<f64> {
+    let miss: Vec<f64> = (0..data.view.len())
+        .map(|j| sample_miss(prob, data, lay, theta, j).map_or(0.0, |m| m[0].hypot(m[1])))
+        .collect();
+    let mut used: Vec<f64> = miss
+        .iter()
+        .zip(data.weight)
+        .filter(|&(m, &w)| w > 0.0 && m.is_finite())
+        .map(|(&m, _)| m)
+        .collect();
+    if used.is_empty() {
+        return vec![1.0; miss.len()];
+    }
+    let mid = used.len() / 2;
+    let median = *used.select_nth_unstable_by(mid, f64::total_cmp).1;
+    let scale = CAUCHY_SCALE * median;
+    if !(scale > 0.0 && scale.is_finite()) {
+        return vec![1.0; miss.len()];
+    }
+    miss.iter()
+        .map(|m| 1.0 / (1.0 + (m / scale) * (m / scale)))
+        .collect()
 }
 
 fn cost(r: &[f64]) -> f64 {
@@ -339,68 +400,33 @@ pub fn fit_board_tilts(
     if let Some(t) = theta.get_mut(lay.z_c_index()) {
         *t = z_c0;
     }
-    let valid = |th: &[f64]| {
-        th.get(lay.z_c_index())
-            .is_some_and(|&z| z > 0.0 && z < z_max)
-    };
+    let mut robust = vec![1.0; data.view.len()];
+    let mut iterations = levenberg_marquardt(prob, data, &lay, &robust, z_max, &mut theta);
+    if prob.robust {
+        for _ in 0..MAX_REWEIGHTS {
+            let next = cauchy_weights(prob, data, &lay, &theta);
+            let change = next
+                .iter()
+                .zip(&robust)
+                .fold(0.0_f64, |acc, (a, b)| acc.max((a - b).abs()));
+            robust = next;
+            iterations += levenberg_marquardt(prob, data, &lay, &robust, z_max, &mut theta);
+            if change <= WEIGHT_TOLERANCE {
+                break;
+            }
+        }
+    }
 
     let mut r = Vec::new();
-    residuals(prob, data, &lay, &theta, &mut r);
+    residuals(prob, data, &lay, &theta, &robust, &mut r);
     let m_eq = r.len();
-    let mut c = cost(&r);
-    let mut lambda = 1e-3;
+    let c = cost(&r);
     let mut jac = Mat::<f64>::zeros(m_eq, n);
     let mut rp = Vec::new();
     let mut rm = Vec::new();
-    let mut iterations = 0;
-    for it in 0..MAX_ITERATIONS {
-        iterations = it + 1;
-        jacobian(prob, data, &lay, &theta, &mut jac, &mut rp, &mut rm);
-        // Normal equations J^T J d = -J^T r (r = measured - model, so J is of -model).
-        let normal = jac.transpose() * &jac;
-        let rhs = Mat::<f64>::from_fn(n, 1, |a, _| {
-            -(0..m_eq)
-                .map(|e| jac[(e, a)] * r.get(e).copied().unwrap_or(0.0))
-                .sum::<f64>()
-        });
-        let mut improved = false;
-        for _ in 0..20 {
-            let mut damped = normal.clone();
-            for a in 0..n {
-                damped[(a, a)] += lambda * normal[(a, a)].max(1e-12);
-            }
-            let Ok(llt) = damped.llt(Side::Lower) else {
-                lambda *= 10.0;
-                continue;
-            };
-            let step = llt.solve(&rhs);
-            let trial: Vec<f64> = theta
-                .iter()
-                .enumerate()
-                .map(|(a, t)| t + step[(a, 0)])
-                .collect();
-            if !valid(&trial) {
-                lambda *= 10.0;
-                continue;
-            }
-            residuals(prob, data, &lay, &trial, &mut rp);
-            let ct = cost(&rp);
-            if ct.is_finite() && ct <= c {
-                let done = (c - ct) <= COST_TOLERANCE * c.max(f64::MIN_POSITIVE);
-                theta = trial;
-                std::mem::swap(&mut r, &mut rp);
-                c = ct;
-                lambda = (lambda / 3.0).max(1e-12);
-                improved = !done;
-                break;
-            }
-            lambda *= 4.0;
-        }
-        if !improved {
-            break;
-        }
-    }
-    jacobian(prob, data, &lay, &theta, &mut jac, &mut rp, &mut rm);
+    jacobian(
+        prob, data, &lay, &theta, &robust, &mut jac, &mut rp, &mut rm,
+    );
     let normal = jac.transpose() * &jac;
     let cov = normal
         .llt(Side::Lower)
@@ -433,16 +459,20 @@ pub fn fit_board_tilts(
     let g_se = |k: usize| [se(k) / LENGTH_PX, se(k + 1) / LENGTH_PX];
     let n_samples = data.view.len();
     let mut acc = vec![(0.0, 0.0); prob.distances.len()];
+    let mut low = vec![(0usize, 0usize); prob.distances.len()];
     for j in 0..n_samples {
-        if let (Some(&k), Some(&w), Some(rx), Some(ry)) = (
+        if let (Some(&k), Some(&w), Some(&rw), Some(rx), Some(ry)) = (
             data.board.get(j),
             data.weight.get(j),
+            robust.get(j),
             r.get(2 * j),
             r.get(2 * j + 1),
-        ) && let Some(a) = acc.get_mut(k)
+        ) && let (Some(a), Some(l)) = (acc.get_mut(k), low.get_mut(k))
         {
             a.0 += rx * rx + ry * ry;
-            a.1 += 2.0 * w;
+            a.1 += 2.0 * w * rw;
+            l.0 += usize::from(rw < 0.5);
+            l.1 += 1;
         }
     }
     let total: (f64, f64) = acc.iter().fold((0.0, 0.0), |s, a| (s.0 + a.0, s.1 + a.1));
@@ -463,17 +493,97 @@ pub fn fit_board_tilts(
         gradients: (0..lay.n_boards).map(|k| g(lay.g_index(k))).collect(),
         gradients_se: (0..lay.n_boards).map(|k| g_se(lay.g_index(k))).collect(),
         board_rms: acc.iter().map(|&a| rms_of(a)).collect(),
+        board_downweighted: low
+            .iter()
+            .map(|&(d, m)| if m > 0 { d as f64 / m as f64 } else { 0.0 })
+            .collect(),
         rms: rms_of(total),
         iterations,
     })
 }
 
+/// Levenberg-Marquardt from `theta` (updated in place) with the samples' robust weights
+/// fixed; `Z_c` is kept inside `(0, z_max)`. Returns the iterations taken.
+fn levenberg_marquardt(
+    prob: &TiltProblem,
+    data: &ParallaxSamples<'_>,
+    lay: &Layout,
+    robust: &[f64],
+    z_max: f64,
+    theta: &mut Vec<f64>,
+) -> usize {
+    let n = lay.n_params();
+    let valid = |th: &[f64]| {
+        th.get(lay.z_c_index())
+            .is_some_and(|&z| z > 0.0 && z < z_max)
+    };
+    let mut r = Vec::new();
+    residuals(prob, data, lay, theta, robust, &mut r);
+    let m_eq = r.len();
+    let mut c = cost(&r);
+    let mut lambda = 1e-3;
+    let mut jac = Mat::<f64>::zeros(m_eq, n);
+    let mut rp = Vec::new();
+    let mut rm = Vec::new();
+    let mut iterations = 0;
+    for it in 0..MAX_ITERATIONS {
+        iterations = it + 1;
+        jacobian(prob, data, lay, theta, robust, &mut jac, &mut rp, &mut rm);
+        // Normal equations J^T J d = -J^T r (r = measured - model, so J is of -model).
+        let normal = jac.transpose() * &jac;
+        let rhs = Mat::<f64>::from_fn(n, 1, |a, _| {
+            -(0..m_eq)
+                .map(|e| jac[(e, a)] * r.get(e).copied().unwrap_or(0.0))
+                .sum::<f64>()
+        });
+        let mut improved = false;
+        for _ in 0..20 {
+            let mut damped = normal.clone();
+            for a in 0..n {
+                damped[(a, a)] += lambda * normal[(a, a)].max(1e-12);
+            }
+            let Ok(llt) = damped.llt(Side::Lower) else {
+                lambda *= 10.0;
+                continue;
+            };
+            let step = llt.solve(&rhs);
+            let trial: Vec<f64> = theta
+                .iter()
+                .enumerate()
+                .map(|(a, t)| t + step[(a, 0)])
+                .collect();
+            if !valid(&trial) {
+                lambda *= 10.0;
+                continue;
+            }
+            residuals(prob, data, lay, &trial, robust, &mut rp);
+            let ct = cost(&rp);
+            if ct.is_finite() && ct <= c {
+                let done = (c - ct) <= COST_TOLERANCE * c.max(f64::MIN_POSITIVE);
+                *theta = trial;
+                std::mem::swap(&mut r, &mut rp);
+                c = ct;
+                lambda = (lambda / 3.0).max(1e-12);
+                improved = !done;
+                break;
+            }
+            lambda *= 4.0;
+        }
+        if !improved {
+            break;
+        }
+    }
+    iterations
+}
+
 /// Central-difference Jacobian of the residuals.
+#[allow(clippy::too_many_arguments)]
 fn jacobian(
     prob: &TiltProblem,
     data: &ParallaxSamples<'_>,
     lay: &Layout,
     theta: &[f64],
+    robust: &[f64],
     jac: &mut Mat<f64>,
     rp: &mut Vec<f64>,
     rm: &mut Vec<f64>,
@@ -485,11 +595,11 @@ fn jacobian(
         if let Some(v) = t.get_mut(a) {
             *v = base + step;
         }
-        residuals(prob, data, lay, &t, rp);
+        residuals(prob, data, lay, &t, robust, rp);
         if let Some(v) = t.get_mut(a) {
             *v = base - step;
         }
-        residuals(prob, data, lay, &t, rm);
+        residuals(prob, data, lay, &t, robust, rm);
         if let Some(v) = t.get_mut(a) {
             *v = base;
         }
@@ -525,6 +635,7 @@ mod tests {
             centres: None,
             gradient_prior: 1e-3,
             fit_reference: true,
+            robust: false,
         };
         let mut s = Samples::default();
         let l = LENGTH_PX;
@@ -619,6 +730,57 @@ mod tests {
             assert!((a[0] - b[0]).abs() < 1e-5 && (a[1] - b[1]).abs() < 1e-5);
         }
         assert!((fit.z_c - z_c).abs() < 1e-7, "{}", fit.z_c);
+    }
+
+    #[test]
+    fn robust_fit_ignores_cells_that_locked_onto_wrong_matches() {
+        let g = [[-0.8e-5, 1.1e-5], [0.5e-5, 0.9e-5]];
+        let (mut prob, offsets, z_c, mut s) = synthetic([0.0; 2], &g);
+        prob.fit_reference = false;
+        // Flow noise of up to 0.03 px (a fixed pseudo-random sequence), and one cell in
+        // 25, all at one side of the frame, off by 1-3 px: it tilts a least-squares fit.
+        let mut state = 12345_u64;
+        for p in &mut s.parallax {
+            for v in p.iter_mut() {
+                state = state
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                *v += ((state >> 11) as f64 / (1u64 << 53) as f64 - 0.5) * 0.06;
+            }
+        }
+        let mut bad = 0;
+        for j in (0..s.view.len()).step_by(25) {
+            if s.pos[j][0] > 400.0 {
+                s.parallax[j][0] += 1.0 + (j % 5) as f64 * 0.5;
+                bad += 1;
+            }
+        }
+        assert!(bad > 10);
+        let plain = fit_board_tilts(&prob, &s.view(), &offsets, 0.2).unwrap();
+        prob.robust = true;
+        let fit = fit_board_tilts(&prob, &s.view(), &offsets, 0.2).unwrap();
+        let worst = |f: &TiltFit| {
+            f.offsets
+                .iter()
+                .zip(&offsets)
+                .map(|(a, b)| (a[0] - b[0]).hypot(a[1] - b[1]) / b[0].hypot(b[1]).max(1e-9))
+                .fold(0.0_f64, f64::max)
+        };
+        assert!(worst(&plain) > 5e-4, "{}", worst(&plain));
+        assert!(worst(&fit) < 3e-4, "{}", worst(&fit));
+        assert!((plain.z_c - z_c).abs() > 2e-4, "{}", plain.z_c);
+        assert!((fit.z_c - z_c).abs() < 5e-5, "{}", fit.z_c);
+        let close =
+            |a: [f64; 2], b: [f64; 2]| (0..2).all(|c| (a[c] - b[c]).abs() < 0.1 * b[c].abs());
+        assert!(fit.gradients.iter().zip(&g).all(|(a, b)| close(*a, *b)));
+        let share = bad as f64 / s.view.len() as f64;
+        assert!(
+            fit.board_downweighted
+                .iter()
+                .all(|&d| d > 0.5 * share && d < 0.1),
+            "{:?} {share}",
+            fit.board_downweighted
+        );
     }
 
     #[test]

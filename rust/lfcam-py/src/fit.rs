@@ -67,12 +67,13 @@ fn indices(obj: &Bound<'_, PyAny>, arg: &str) -> PyResult<Vec<usize>> {
 ///
 /// board, view: (M,) int64; pos, parallax: (M, 2) float64; weight: (M,) float64;
 /// distances: (K,) float64 (the boards other than the reference); offsets: (N, 2)
-/// float64, the start; centres: optional (N, 2) float64 with centres_weight.
+/// float64, the start; centres: optional (N, 2) float64 with centres_weight; robust:
+/// Cauchy-reweighted samples.
 /// Returns a dict of the solution, standard errors and residuals.
 #[pyfunction]
 #[pyo3(signature = (
     board, view, pos, parallax, weight, distances, z_b, reference, offsets, z_c, centre,
-    gradient_prior, centres=None, centres_weight=0.0, fit_reference=false
+    gradient_prior, centres=None, centres_weight=0.0, fit_reference=false, robust=false
 ))]
 #[allow(clippy::too_many_arguments)]
 pub fn fit_board_tilts<'py>(
@@ -92,6 +93,7 @@ pub fn fit_board_tilts<'py>(
     centres: Option<&Bound<'py, PyAny>>,
     centres_weight: f64,
     fit_reference: bool,
+    robust: bool,
 ) -> PyResult<Bound<'py, PyDict>> {
     guarded(py, "fit_board_tilts", || {
         let board = indices(board, "board")?;
@@ -118,6 +120,7 @@ pub fn fit_board_tilts<'py>(
             centres,
             gradient_prior,
             fit_reference,
+            robust,
         };
         let data = ParallaxSamples {
             board: &board,
@@ -157,6 +160,7 @@ pub fn fit_board_tilts<'py>(
                 .collect::<Vec<_>>(),
         )?;
         out.set_item("board_rms_px", fit.board_rms)?;
+        out.set_item("board_downweighted", fit.board_downweighted)?;
         out.set_item("rms_px", fit.rms)?;
         out.set_item("iterations", fit.iterations)?;
         Ok(out)
