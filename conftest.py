@@ -1,4 +1,4 @@
-"""Doctests (`pytest --doctest-modules python/lfcam`, `--doctest-glob "*.md" docs`):
+"""Doctests (`pytest --doctest-modules --pyargs lfcam`, `--doctest-glob "*.md" docs`):
 examples may use ``lfcam`` and ``np`` without importing them, as the docstrings do."""
 
 from __future__ import annotations

@@ -8,18 +8,36 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 run_uv() { if command -v uv >/dev/null 2>&1; then uv "$@"; else python3 -m uv "$@"; fi; }
-fail=0
+# The 20 resolutions wait on the index, not the CPU: run them at once, report in order.
+out_dir=$(mktemp -d)
+trap 'rm -rf "$out_dir"' EXIT
+cases=()
 for platform in x86_64-manylinux_2_17 aarch64-manylinux_2_17; do
     for py in 3.9 3.10 3.11 3.12 3.13; do
         for resolution in lowest-direct highest; do
-            if out=$(run_uv pip compile pyproject.toml --python-version "$py" \
-                --python-platform "$platform" --resolution "$resolution" \
-                --only-binary :all: --no-header --no-annotate -q 2>&1); then
-                echo "ok   $platform python $py $resolution: $(echo "$out" | tr '\n' ' ')"
-            else
-                echo "FAIL $platform python $py $resolution:"; echo "$out"; fail=1
-            fi
+            case_name="$platform python $py $resolution"
+            cases+=("$case_name")
+            (
+                if run_uv pip compile pyproject.toml --python-version "$py" \
+                    --python-platform "$platform" --resolution "$resolution" \
+                    --only-binary :all: --no-header --no-annotate -q \
+                    > "$out_dir/${#cases[@]}.out" 2>&1; then
+                    echo ok > "$out_dir/${#cases[@]}.rc"
+                else
+                    echo FAIL > "$out_dir/${#cases[@]}.rc"
+                fi
+            ) &
         done
     done
+done
+wait
+fail=0
+for i in "${!cases[@]}"; do
+    n=$((i + 1))
+    if [ "$(cat "$out_dir/$n.rc" 2>/dev/null)" = ok ]; then
+        echo "ok   ${cases[$i]}: $(tr '\n' ' ' < "$out_dir/$n.out")"
+    else
+        echo "FAIL ${cases[$i]}:"; cat "$out_dir/$n.out"; fail=1
+    fi
 done
 exit $fail
