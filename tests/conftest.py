@@ -33,3 +33,18 @@ def reference_camera(tmp_path_factory) -> Camera:
     sim = lfcam.simulate(root / "sim", cfg)
     run = run_calibration(sim.calibration_dir)
     return Camera(sim, run, load_truth(sim.truth_dir / "camera.npz"))
+
+
+def _printable(text: str) -> str:
+    """Text with any unpaired surrogate (a non-UTF-8 file name decoded by
+    ``os.fsdecode``) written as an escape, so the report can be sent as UTF-8."""
+    return text.encode("utf-8", "backslashreplace").decode("utf-8")
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]):
+    # The hostile-input tests log file names with bytes that are not UTF-8; pytest-xdist
+    # sends each report to the controller as UTF-8 and stops on such text.
+    outcome = yield
+    report = outcome.get_result()
+    report.sections = [(title, _printable(text)) for title, text in report.sections]
