@@ -1,8 +1,8 @@
 """Calibration accuracy on imperfect rigs and zoom settings at the reference size (not
 part of the test run: minutes per case).
 
-    python benchmarks/rig.py tilted [--seed 7] [--keep DIR]
-    python benchmarks/rig.py zoom [--seed 4] [--keep DIR]
+    python benchmarks/rig.py tilted [--seed 7] [--keep DIR] [--view-size 480x360] [--captures 5]
+    python benchmarks/rig.py zoom [--seed 4] [--keep DIR] [--view-size 480x360] [--captures 5]
 
 ``tilted``: the reference camera (3 x 4 lenslets, 480 x 360 px views, 5 captures per
 distance) with calibration boards tilted by 1-2 degrees and drifting 2.5-5 mm between
@@ -70,8 +70,9 @@ def _offsets_error(offsets: np.ndarray, truth: np.ndarray) -> float:
     return float((np.linalg.norm(offsets - truth, axis=1)[n > 0] / n[n > 0]).max())
 
 
-def tilted(root: Path, seed: int, checks: Checks) -> None:
-    cfg = SimConfig(board_tilt=2.0, board_drift=5.0, scenes=("board",), seed=seed)
+def tilted(root: Path, base: SimConfig, checks: Checks) -> None:
+    cfg = base.replace(board_tilt=2.0, board_drift=5.0, scenes=("board",))
+    seed = cfg.seed
     t0 = time.perf_counter()
     sim = lfcam.simulate(root / "tilted", cfg, overwrite=True)
     t_sim = time.perf_counter() - t0
@@ -138,8 +139,9 @@ def tilted(root: Path, seed: int, checks: Checks) -> None:
     )
 
 
-def zoom(root: Path, seed: int, checks: Checks) -> None:
-    cfg = SimConfig(zoom=(50.0, 100.0), scenes=(), seed=seed)
+def zoom(root: Path, base: SimConfig, checks: Checks) -> None:
+    cfg = base.replace(zoom=(50.0, 100.0), scenes=())
+    seed = cfg.seed
     t0 = time.perf_counter()
     sim = lfcam.simulate(root / "zoom", cfg, overwrite=True)
     t_sim = time.perf_counter() - t0
@@ -186,13 +188,21 @@ def main() -> int:
     ap.add_argument("case", choices=("tilted", "zoom"))
     ap.add_argument("--seed", type=int, help="simulator seed (default: tilted 7, zoom 4)")
     ap.add_argument("--keep", type=Path, help="keep the simulated folder here")
+    ap.add_argument(
+        "--view-size",
+        default="480x360",
+        help="W x H px of a view (default 480x360, the reference size the targets are for)",
+    )
+    ap.add_argument("--captures", type=int, default=5, help="board captures per distance")
     args = ap.parse_args()
     seed = args.seed if args.seed is not None else {"tilted": 7, "zoom": 4}[args.case]
     checks = Checks()
     print(f"lfcam {lfcam.__version__}, {os.cpu_count()} cores")
     with tempfile.TemporaryDirectory() as tmp:
         root = args.keep or Path(tmp)
-        {"tilted": tilted, "zoom": zoom}[args.case](root, seed, checks)
+        w, h = (int(v) for v in args.view_size.lower().split("x"))
+        base = SimConfig(view_size=(w, h), captures_per_distance=args.captures, seed=seed)
+        {"tilted": tilted, "zoom": zoom}[args.case](root, base, checks)
     if checks.failed:
         print(f"MISSED: {', '.join(checks.failed)}")
         return 1
