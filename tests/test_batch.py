@@ -261,6 +261,40 @@ def test_jobs_2_identical_to_jobs_1_bad_capture_reported(small, tmp_path) -> Non
         lfcam.process_folder(inputs, small["cal"], out, sav_views=True)
 
 
+def _live_calibrations() -> int:
+    import gc
+
+    gc.collect()
+    return sum(isinstance(o, lfcam.Calibration) for o in gc.get_objects())
+
+
+def test_one_calibration_in_memory_while_captures_run(small, tmp_path, monkeypatch) -> None:
+    """The command line's own copy (loaded to check its options) is gone before the
+    batch runs, and with worker processes the caller keeps none: a full-size
+    calibration is about half a gigabyte (benchmarks/NOTES.md, "Batches")."""
+    from lfcam.batch import folder
+    from lfcam.cli import main
+
+    counts: dict[str, int] = {}
+
+    def watch(name: str, fn):
+        def wrapped(*args, **kwargs):
+            counts[name] = _live_calibrations()
+            return fn(*args, **kwargs)
+
+        return wrapped
+
+    monkeypatch.setattr(folder, "_run_here", watch("here", folder._run_here))
+    monkeypatch.setattr(folder, "run_pool", watch("pool", folder.run_pool))
+    base = _live_calibrations()
+    capture = small["in"] / "planes.png"
+    assert main(["process", str(capture), "-c", str(small["cal"]), "-o", str(tmp_path / "a")]) == 0
+    args = ["process", str(small["in"]), "-c", str(small["cal"]), "-o", str(tmp_path / "b")]
+    assert main([*args, "--jobs", "2"]) == 0
+    # --jobs 1 runs the captures here, with the batch's one copy; --jobs 2 in workers.
+    assert counts == {"here": base + 1, "pool": base}
+
+
 def test_options_checked_and_normalised(small, tmp_path, monkeypatch) -> None:
     cal = lfcam.Calibration.load(small["cal"])
     one = small["in"] / "board.png"

@@ -23,9 +23,12 @@ from lfcam.io import (
     srgb_encode,
     write_image,
 )
-from lfcam.outputs import output_frame, reference_box, write_capture
+from lfcam.outputs import NovelViewOptions, output_frame, reference_box, write_capture
 from lfcam.pipeline import process_capture
 from lfcam.processing.depth import depth_from_parallax
+from lfcam.products.geometry import parse_pose
+from lfcam.products.mesh import mesh_from_depth
+from lfcam.products.render import render_mesh
 from lfcam.products.superres import resolve_parallax
 
 
@@ -147,6 +150,46 @@ def test_capture_outputs_crop_exactly_and_describe_themselves(
     assert "comment units X, Y m; Z m" in head
     assert "comment frame front lens: X right, Y down, Z forward" in head
     assert (valid / "points.ply").read_bytes() == (full / "points.ply").read_bytes()
+
+
+def test_novel_views_crop_exactly(reference_camera, planes, tmp_path) -> None:
+    """Novel views follow the output frame: pixel (x, y) is (x + x0, y + y0) of the
+    --frame full render, the mesh does not change."""
+    cal = reference_camera.cal
+    novel = NovelViewOptions(mesh=True, pose=parse_pose("0.002,0,0,0,1,0"), orbit=2)
+    valid = write_capture(tmp_path / "valid", planes, cal, novel=novel)
+    full = write_capture(tmp_path / "full", planes, cal, novel=novel, frame="full")
+    x0, y0, w, h = reference_box(cal)
+    info = json.loads((valid / "result.json").read_text())["novel_views"]
+    assert info["frame"] == {"name": "valid", "offset_xy": [x0, y0], "shape": [h, w]}
+    z_full = tifffile.imread(full / "novel_view_depth.tiff")
+    z_valid = tifffile.imread(valid / "novel_view_depth.tiff")
+    # --frame full is the render itself, in the rectified frame's size.
+    mesh = mesh_from_depth(planes.depth.depth, cal, planes.views[cal.reference])
+    np.testing.assert_array_equal(z_full, render_mesh(mesh, cal, novel.pose).depth)
+    assert z_valid.shape == (h, w)
+    np.testing.assert_array_equal(z_valid, z_full[y0 : y0 + h, x0 : x0 + w])
+    assert np.isfinite(z_valid).mean() == pytest.approx(info["novel_view_coverage"])
+    assert np.isfinite(z_valid).sum() > 0.5 * h * w  # the planes fill the view
+    meta = read_tiff_description(valid / "novel_view_depth.tiff")
+    assert meta["frame"]["offset_xy"] == [x0, y0]
+    assert meta["unit"] == "m"
+    names = ["novel_view.png", *(f"orbit/frame_{k:03d}.png" for k in range(2))]
+    for name in names:
+        img_full = cv2.imread(str(full / name))
+        img_valid = cv2.imread(str(valid / name))
+        assert img_full.shape[:2] == tuple(cal.rect_shape), name
+        np.testing.assert_array_equal(img_valid, img_full[y0 : y0 + h, x0 : x0 + w], err_msg=name)
+    # The video holds the same frames, padded to even sizes (MPEG-4).
+    video = cv2.VideoCapture(str(valid / "orbit.mp4"))
+    assert video.get(cv2.CAP_PROP_FRAME_COUNT) == 2
+    assert video.get(cv2.CAP_PROP_FRAME_WIDTH) == w + w % 2
+    assert video.get(cv2.CAP_PROP_FRAME_HEIGHT) == h + h % 2
+    video.release()
+    assert (valid / "mesh.ply").read_bytes() == (full / "mesh.ply").read_bytes()
+    # From the reference pose, everything drawn lies in the box: nothing is cut away.
+    ref = render_mesh(mesh, cal, np.eye(4)).depth
+    assert np.isfinite(ref[y0 : y0 + h, x0 : x0 + w]).sum() == np.isfinite(ref).sum() > 0
 
 
 # ------------------------------------------------------------------ depth arguments

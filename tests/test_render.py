@@ -355,6 +355,7 @@ def test_process_command_writes_mesh_and_novel_views(reference_camera, tmp_path,
     import tifffile
 
     from lfcam.cli import EXIT_INPUT, main
+    from lfcam.outputs import reference_box
 
     plyfile = pytest.importorskip("plyfile")
     cam = reference_camera
@@ -374,7 +375,9 @@ def test_process_command_writes_mesh_and_novel_views(reference_camera, tmp_path,
     assert mesh["vertex"].count == info["mesh_vertices"]
     assert mesh["face"].count == info["mesh_faces"]
     img = cv2.imread(str(d / "novel_view.png"))
-    assert img.shape[:2] == cam.cal.rect_shape
+    x0, y0, w, h = reference_box(cam.cal)  # cut to the output frame, as the depth is
+    assert img.shape[:2] == (h, w)
+    assert info["frame"]["offset_xy"] == [x0, y0]
     z = tifffile.imread(d / "novel_view_depth.tiff")
     assert np.isfinite(z).mean() == pytest.approx(info["novel_view_coverage"])
     assert sorted(p.name for p in (d / "orbit").iterdir()) == [

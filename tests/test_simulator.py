@@ -28,6 +28,8 @@ CAMERAS = {
         distances=(0.7, 1.3, 2.0),
         seed=11,
     ),
+    # A parfocal zoom's setting: its principal plane moved with the focal length.
+    "3x4-zoom-50mm-setting": SimConfig(zoom=(50.0, 100.0), seed=4).zoom_setting(50.0),
 }
 
 

@@ -201,9 +201,13 @@ def plane_sweep(
     alpha: float,
     radius: int,
     eps: float,
+    base: NDArray[np.float32] | None = None,
+    active: NDArray[np.uint8] | None = None,
+    cubic: bool = False,
 ) -> NDArray[np.float32]:
-    """Plane sweep along the parallax lines: (H, W, S, 4) parallax, cost, curvature and
-    second-best cost per pixel and view subset."""
+    """Plane sweep along the parallax lines: (H, W, S, 5) parallax, cost, curvature,
+    second-best cost and cost at the candidate nearest 0 per pixel and view subset;
+    candidates relative to ``base`` if given, only ``active`` pixels if given."""
 
 def set_num_threads(n: int) -> None:
     """Set the number of threads lfcam's kernels run on (1 to 1024)."""

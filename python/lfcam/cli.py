@@ -605,16 +605,15 @@ def _novel_options(args: argparse.Namespace, settings: Sequence[Any]) -> Any:
     return opts
 
 
-def _cmd_process(args: argparse.Namespace) -> int:
-    from .batch import ProcessOptions, process_folder
+def _process_options(args: argparse.Namespace) -> Any:
+    """The options of ``lfcam process``, checked against the calibration, as
+    :class:`lfcam.batch.ProcessOptions`. The calibration loaded for the checks is
+    dropped on return: the batch loads its own (with --jobs 1 in this process, where a
+    second copy of a full-size calibration would add about half a gigabyte)."""
+    from .batch import ProcessOptions
     from .calibration import ZoomCalibration
     from .calibration.settings import check_focal_length
 
-    if not 1 <= args.jobs <= MAX_JOBS:
-        raise InputError(f"--jobs: expected 1 to {MAX_JOBS}, got {args.jobs}")
-    if args.superres is not None and not (1 <= args.superres <= 4):
-        raise InputError(f"--superres: expected a factor from 1 to 4, got {args.superres}")
-    _check_output_folder(args.output, "-o")
     if args.refocus and not all(math.isfinite(z) and z > 0 for z in args.refocus):
         raise InputError(f"--refocus: expected finite distances > 0 m, got {list(args.refocus)}")
     if args.zoom is not None:
@@ -634,7 +633,7 @@ def _cmd_process(args: argparse.Namespace) -> int:
             raise InputError(
                 f"--refocus: the calibration{at} is relative (no Z_c): no metric focus"
             )
-    options = ProcessOptions(
+    return ProcessOptions(
         save_views=args.save_views,
         superres=args.superres,
         refocus=tuple(args.refocus or ()),
@@ -643,6 +642,17 @@ def _cmd_process(args: argparse.Namespace) -> int:
         frame=args.frame,
         focal_length=args.zoom,
     )
+
+
+def _cmd_process(args: argparse.Namespace) -> int:
+    from .batch import process_folder
+
+    if not 1 <= args.jobs <= MAX_JOBS:
+        raise InputError(f"--jobs: expected 1 to {MAX_JOBS}, got {args.jobs}")
+    if args.superres is not None and not (1 <= args.superres <= 4):
+        raise InputError(f"--superres: expected a factor from 1 to 4, got {args.superres}")
+    _check_output_folder(args.output, "-o")
+    options = _process_options(args)
     if args.cluster is not None and args.jobs != 1:
         raise InputError("--jobs: not with --cluster (the cluster's workers run the captures)")
     if not args.cluster_timeout > 0:

@@ -93,12 +93,20 @@ class NovelViewOptions:
 
 
 def write_novel_views(
-    folder: Any, result: CaptureResult, cal: Calibration, options: NovelViewOptions
+    folder: Any,
+    result: CaptureResult,
+    cal: Calibration,
+    options: NovelViewOptions,
+    frame: str = "valid",
 ) -> dict[str, Any]:
     """Write the mesh and novel views of one processed capture into ``folder``.
 
-    Called by :func:`write_capture` inside its atomic folder. PNGs are
-    sRGB-encoded like the other previews; holes (nothing seen) are black.
+    Called by :func:`write_capture` inside its atomic folder. The novel cameras have
+    the reference view's rectified-frame intrinsics; their images are cut to ``frame``
+    (:func:`output_frame`) like the other products, so a novel view's pixel
+    ``(x, y)`` is pixel ``(x + x0, y + y0)`` of the whole frame's render. PNGs are
+    sRGB-encoded like the other previews; holes (nothing seen) are black. The mesh
+    (metres) does not depend on the frame.
 
     Returns
     -------
@@ -109,6 +117,7 @@ def write_novel_views(
     depth = result.depth.depth
     if depth is None:
         raise InputError("result: meshes and novel views need metric depth")
+    fr = output_frame(cal, frame)
     t0 = time.perf_counter()
     mesh = mesh_from_depth(depth, cal, result.views[cal.reference])
     info: dict[str, Any] = {
@@ -116,38 +125,56 @@ def write_novel_views(
         "mesh_vertices": len(mesh.vertices),
         "mesh_faces": len(mesh.faces),
     }
+
+    def render(pose: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        # The whole frame's render, cut: the same pixels as --frame full, exactly.
+        r = render_mesh(mesh, cal, pose)
+        return _crop(r.image, fr), _crop(r.depth, fr), _crop(r.mask, fr)
+
     if options.mesh:
         write_mesh_ply(out / "mesh.ply", mesh)
     if options.pose is not None:
-        r = render_mesh(mesh, cal, options.pose)
-        write_image(out / "novel_view.png", encode_u8(r.image), srgb=True)
+        image, z, mask = render(options.pose)
+        write_image(out / "novel_view.png", encode_u8(image), srgb=True)
         write_image(
             out / "novel_view_depth.tiff",
-            r.depth,
+            z,
             description={
                 "quantity": "depth Z along the novel camera's axis",
                 "unit": "m",
                 "nan": "NaN: nothing seen",
-                "frame": "the novel camera (pose in result.json), the rectified frame's size",
+                "frame": {
+                    **{k: fr[k] for k in ("name", "offset_xy", "rectified_shape")},
+                    "camera": "the novel camera (pose in result.json) with the reference"
+                    " view's rectified-frame intrinsics",
+                },
                 "software": f"lfcam {_version()}",
             },
         )
         info["novel_view_pose"] = options.pose.tolist()
-        info["novel_view_coverage"] = float(r.mask.mean())
+        info["novel_view_coverage"] = float(mask.mean())
     if options.orbit > 0:
         (out / "orbit").mkdir()
-        H, W = cal.rect_shape
-        video = cv2.VideoWriter(str(out / "orbit.mp4"), cv2.VideoWriter.fourcc(*"mp4v"), 12, (W, H))
+        h, w = fr["shape"]
+        # MPEG-4 frames have even sizes (an odd one loses its last row or column):
+        # the video's frames are padded with black at the bottom and right.
+        hv, wv = h + h % 2, w + w % 2
+        video = cv2.VideoWriter(
+            str(out / "orbit.mp4"), cv2.VideoWriter.fourcc(*"mp4v"), 12, (wv, hv)
+        )
         try:
             for k, pose in enumerate(orbit_poses(cal, options.orbit)):
-                rgb = encode_u8(render_mesh(mesh, cal, pose).image)
+                rgb = encode_u8(render(pose)[0])
                 if rgb.ndim == 2:
                     rgb = np.repeat(rgb[..., None], 3, 2)
                 write_image(out / "orbit" / f"frame_{k:03d}.png", rgb, srgb=True)
-                video.write(np.ascontiguousarray(rgb[..., ::-1]))
+                padded = np.zeros((hv, wv, 3), np.uint8)
+                padded[:h, :w] = rgb[..., ::-1]
+                video.write(padded)
         finally:
             video.release()
         info["orbit_frames"] = options.orbit
+    info["frame"] = {k: fr[k] for k in ("name", "offset_xy", "shape")}
     info["novel_views_s"] = time.perf_counter() - t0
     return info
 
@@ -235,13 +262,13 @@ def write_capture(
     and, with ``save_views``, ``views/view_R_C.png``; ``superres.tiff`` (float32,
     linear, the rectified views' scale) and ``superres.png``, ``refocus_<Z>m.tiff``
     and ``.png`` when the result has them; with ``novel``, the mesh and novel views
-    it asks for (:func:`write_novel_views`, in the whole rectified frame).
+    it asks for (:func:`write_novel_views`).
 
-    Images are cut to ``frame`` (:func:`output_frame`; ``result.json`` records the
-    crop offset, and ``calibration_setting`` the zoom setting ``result`` used, which
-    ``cal`` must be); points keep their positions. PNGs are sRGB-encoded and say so; each
-    TIFF's ImageDescription is JSON: quantity, unit, frame and the calibration's
-    SHA-256 (``extra["calibration_sha256"]``, when given).
+    Images, the novel views among them, are cut to ``frame`` (:func:`output_frame`;
+    ``result.json`` records the crop offset, and ``calibration_setting`` the zoom
+    setting ``result`` used, which ``cal`` must be); points keep their positions. PNGs
+    are sRGB-encoded and say so; each TIFF's ImageDescription is JSON: quantity, unit,
+    frame and the calibration's SHA-256 (``extra["calibration_sha256"]``, when given).
     """
     out = Path(out_dir)
     fr = output_frame(cal, frame)
@@ -335,7 +362,7 @@ def write_capture(
         }
         novel_info: dict[str, Any] = {}
         if novel is not None and novel.any:
-            novel_info = {"novel_views": write_novel_views(tmp, result, cal, novel)}
+            novel_info = {"novel_views": write_novel_views(tmp, result, cal, novel, frame)}
         info = {
             "source": result.source,
             "capture": result.metadata.to_dict(),

@@ -290,13 +290,17 @@ def process_folder(
         nthreads = threads or max(1, (os.cpu_count() or 1) // workers)
         extra = result_extra(cal_path, sha256, opts, {"jobs": workers, "threads": nthreads})
         args = (cal_arg, sha256, opts, extra, nthreads)
+        # In this process, with the calibration already loaded.
+        here = (calibration, *args[1:]) if workers == 1 else None
 
         def runner(batch: list[tuple[CaptureTask, bool]]) -> Iterator[tuple[int, Any]]:
-            if workers > 1:
+            if here is None:
                 return run_pool(batch, workers, _init_worker, args, _run)
-            # In this process, with the calibration already loaded.
-            return _run_here(batch, (calibration, *args[1:]))
+            return _run_here(batch, here)
 
+    # Workers given the path load their own copy: this process keeps the calibration
+    # only to run captures itself (a full-size one holds about half a gigabyte).
+    del calibration
     # Captures whose lock another run holds are tried again at the end, waiting for it.
     busy: list[int] = []
     for wait, batch in ((False, todo), (True, busy)):

@@ -26,7 +26,7 @@ import numpy as np
 from ..errors import CalibrationError, InputError, LfcamError
 from ..io import BAYER_PATTERNS, read_image, to_float, write_image_atomic, write_text_atomic
 from ..kernels.flow import FlowParams
-from ..kernels.warp import remap
+from ..kernels.warp import identity_grid, remap
 from .file import Calibration
 from .geometric import coarse_homography, register_view
 from .inputs import CalibrationInputs, CaptureReader, find_inputs, mean_capture
@@ -41,6 +41,7 @@ from .parallax import (
     fit_depth_model,
     invert_map,
     lattice_check,
+    less_reference,
     measure_parallax,
     tilt_degrees,
 )
@@ -487,20 +488,39 @@ def run_calibration(
     parallax: dict[float, np.ndarray] = {}
     measured: dict[float, ParallaxMeasurement] = {}
     fit_info: dict[str, Any] = {}
+    rect_grid = identity_grid(H_rect, W_rect)
+    zero = None
+    if len(distances) > 1:
+        # The residual parallax of the reference board (the warp maps' registration
+        # error), which every other board shows too and which is taken off theirs.
+        say(f"residual parallax at {z_b:g} m")
+        mean = np.mean(boards_b, axis=0)
+        views = np.stack([remap(_crop(mean, layout.crops[i]), warps[i]) for i in range(N)])
+        views[~masks] = np.nan
+        zero = measure_parallax(views, masks, ref, flow)
     for z in distances:
         if z == z_b:
             continue
         say(f"parallax at {z:g} m")
         mean = np.mean([_apply_gains(reader(p), gains) for p in inputs.boards[z]], axis=0)
-        views = np.stack([remap(_crop(mean, layout.crops[i]), warps[i]) for i in range(N)])
+        crops = [_crop(mean, layout.crops[i]) for i in range(N)]
+        views = np.stack([remap(crops[i], warps[i]) for i in range(N)])
         views[~masks] = np.nan
-        meas = measure_parallax(views, masks, ref, flow)
+
+        def resample(
+            i: int, shift: np.ndarray, crops: list[np.ndarray] = crops
+        ) -> tuple[np.ndarray, np.ndarray]:
+            # View i at p + shift: its warp map moved, one interpolation from the crop.
+            moved = remap(warps[i], rect_grid + shift)
+            return remap(crops[i], moved), np.isfinite(moved).all(-1)
+
+        meas = measure_parallax(views, masks, ref, flow, resample=resample)
         P, cover, spread = meas.shift, meas.coverage, meas.spread
         pred, wrong = lattice_check(P, grid, ref)
         if wrong.any():
             redo = {int(i): pred[i] for i in np.nonzero(wrong)[0]}
             say(f"parallax at {z:g} m: measuring views {sorted(redo)} again from the lattice")
-            again = measure_parallax(views, masks, ref, flow, init=redo)
+            again = measure_parallax(views, masks, ref, flow, init=redo, resample=resample)
             for i in redo:
                 P[i], cover[i], spread[i] = again.shift[i], again.coverage[i], again.spread[i]
                 if i in again.cells:
@@ -518,6 +538,9 @@ def run_calibration(
             raise CalibrationError(
                 f"{inputs.boards[z][0].parent}: cannot measure the board's parallax in views {bad}"
             )
+        if zero is not None:
+            meas = less_reference(meas, zero)
+            P = meas.shift
         parallax[z] = P
         measured[z] = meas
         fit_info[f"{z:g}"] = {
@@ -611,7 +634,8 @@ def run_calibration(
             for i in range(N)
         ],
         "depth_model": {k: v for k, v in fit.items() if k != "offsets"}
-        | {"route": route, "optical_centre_route": agree, "parallax": fit_info},
+        | {"route": route, "optical_centre_route": agree, "parallax": fit_info}
+        | ({} if zero is None else {"reference_board_parallax_px": zero.shift.tolist()}),
         "inputs": {
             "folder": str(inputs.root),
             "white": [p.name for p in inputs.white],

@@ -10,6 +10,7 @@ then fitted by least squares.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -48,6 +49,7 @@ __all__ = [
     "fit_depth_model",
     "invert_map",
     "lattice_check",
+    "less_reference",
     "measure_parallax",
     "tilt_degrees",
 ]
@@ -174,26 +176,68 @@ def _cell_medians(good: np.ndarray, flow: np.ndarray) -> tuple[np.ndarray, np.nd
     return np.asarray(pos, np.float64).reshape(-1, 2), np.asarray(shift, np.float64).reshape(-1, 2)
 
 
+#: A view resampled at ``p + shift`` (and its mask) for the second pass of
+#: :func:`measure_parallax`: ``resample(i, shift)``.
+Resample = Callable[[int, np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+
+def _flow_pass(
+    a: np.ndarray,
+    view: np.ndarray,
+    mask: np.ndarray,
+    both: np.ndarray,
+    params: FlowParams,
+    start: np.ndarray | None,
+    round_trip: bool = True,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Flow from the prepared reference ``a`` to ``view`` and the pixels it passes at:
+    inside ``both``, landing inside ``mask`` and (``round_trip``) with a forward-backward
+    round trip within FB_THRESHOLD_PX."""
+    grid = identity_grid(*a.shape[:2])
+    v = prepare(view)
+    f = dis_flow(a, v, params, init=start)
+    good = both & (remap(mask.astype(np.float32), grid + f) > 0.99)
+    if round_trip:
+        b = dis_flow(v, a, params, init=None if start is None else -start)
+        good &= np.linalg.norm(f + remap(b, grid + f), axis=-1) < FB_THRESHOLD_PX
+    return f, good
+
+
 def measure_parallax(
     views: np.ndarray,
     masks: np.ndarray,
     ref: int,
     params: FlowParams,
     init: dict[int, np.ndarray] | None = None,
+    resample: Resample | None = None,
 ) -> ParallaxMeasurement:
     """Median flow from the reference to each view (rectified board images), overall
     and per cell.
 
     ``init`` maps a view index to an expected shift ``(2,)`` that starts its flow
     (and restricts the measurement to those views; the others get NaN).
+
+    With ``resample`` (view ``i`` rectified at ``p + shift`` from its raw crop, and
+    its mask), the flow is measured twice: the second time against view ``i``
+    resampled at its first median shift, so that the flow left is near zero, and the
+    shift is that median plus the second flow. DIS's sub-pixel estimate is biased
+    towards half-pixel shifts (by up to 0.006 px on an exactly shifted pattern, 0.02
+    px on the simulator's boards), which on the shifts of about a pixel of a short
+    focal length is a bias of 1% in the parallax (docs/design.md, "Parallax fit").
     """
     N = views.shape[0]
     a = prepare(views[ref])
-    grid = identity_grid(*a.shape[:2])
     out = np.full((N, 2), np.nan) if init else np.zeros((N, 2))
     cover = np.zeros(N)
     spread = np.zeros(N)
     cells: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    finite_ref = masks[ref] & np.isfinite(views[ref]).all(-1)
+    kernel = np.ones((ERODE_PX,) * 2, np.uint8)
+
+    def common(view: np.ndarray, mask: np.ndarray) -> np.ndarray:
+        both = mask & finite_ref & np.isfinite(view).all(-1)
+        return cv2.erode(both.astype(np.uint8), kernel) > 0
+
     for i in range(N):
         if i == ref:
             out[i] = 0.0
@@ -201,22 +245,19 @@ def measure_parallax(
             continue
         if init and i not in init:
             continue
-        both = (
-            masks[i] & masks[ref] & np.isfinite(views[i]).all(-1) & np.isfinite(views[ref]).all(-1)
-        )
-        both = cv2.erode(both.astype(np.uint8), np.ones((ERODE_PX,) * 2, np.uint8)) > 0
+        both = common(views[i], masks[i])
         start = None
         if init:
             start = np.broadcast_to(np.asarray(init[i], np.float32), (*a.shape[:2], 2))
-        v = prepare(views[i])
-        f = dis_flow(a, v, params, init=start)
-        b = dis_flow(v, a, params, init=None if start is None else -start)
-        # Forward-backward check: follow the flow and come back.
-        back = remap(b, grid + f)
-        fb = np.linalg.norm(f + back, axis=-1)
-        # The board must land inside view i's mask too.
-        land = remap(masks[i].astype(np.float32), grid + f)
-        good = both & (fb < FB_THRESHOLD_PX) & (land > 0.99)
+        f, good = _flow_pass(a, views[i], masks[i], both, params, start)
+        if resample is not None and good.sum() >= MIN_GOOD_PIXELS:
+            # The pixels the first flow passed at, measured again (forward only: its
+            # round trip was checked).
+            first = np.median(f[good], axis=0).astype(np.float32)
+            view, mask = resample(i, first)
+            both = common(view, mask)
+            f, second = _flow_pass(a, view, mask, both, params, None, round_trip=False)
+            f, good = f + first, good & second
         cover[i] = good.sum() / max(both.sum(), 1)
         if good.sum() < MIN_GOOD_PIXELS:
             out[i] = np.nan
@@ -225,6 +266,33 @@ def measure_parallax(
         spread[i] = float(np.median(np.abs(f[good] - out[i]))) * 1.4826
         cells[i] = _cell_medians(good, f)
     return ParallaxMeasurement(out, cover, spread, cells)
+
+
+def less_reference(meas: ParallaxMeasurement, zero: ParallaxMeasurement) -> ParallaxMeasurement:
+    """A board's parallax less the residual parallax ``zero`` of the reference board.
+
+    On the reference board the parallax is zero by construction; what the flow
+    measures there is the warp maps' registration error (and the flow's own bias on
+    these images), which a board at any other distance shows too, at the same
+    rectified position, to first order (docs/design.md, "Parallax fit"). Subtracted
+    view by view and cell by cell (CELL_PX cells); a cell the reference board's flow
+    did not pass is dropped, a view it did not measure keeps its shift.
+    """
+    shift = meas.shift - np.where(np.isfinite(zero.shift), zero.shift, 0.0)
+    cells: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    for i, (pos, par) in meas.cells.items():
+        if i not in zero.cells:
+            cells[i] = (pos, par)
+            continue
+        zpos, zpar = zero.cells[i]
+        at = {(int(x), int(y)): v for (x, y), v in zip(zpos // CELL_PX, zpar)}
+        keys = [(int(x), int(y)) for x, y in pos // CELL_PX]
+        keep = np.array([k in at for k in keys], bool)
+        if not keep.any():
+            continue
+        less = np.array([at[k] for k, ok in zip(keys, keep) if ok]).reshape(-1, 2)
+        cells[i] = (pos[keep], par[keep] - less)
+    return ParallaxMeasurement(shift, meas.coverage, meas.spread, cells)
 
 
 #: A view's board shift may differ from the lenslet lattice's prediction by this

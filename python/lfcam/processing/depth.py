@@ -507,7 +507,7 @@ def depth_from_views(
     if p.refine is not None:
         t3 = time.perf_counter()
         ref = refine_parallax(
-            views[(slice(None), *win)], offsets, int(reference), parallax, p.refine
+            views[(slice(None), *win)], offsets, int(reference), parallax, p.refine, filled
         )
         parallax, swept = ref.parallax, ref.swept
         confidence = np.where(swept, ref.confidence, confidence).astype(np.float32)

@@ -1,14 +1,15 @@
 """Depth refinement: a plane sweep along the calibrated parallax lines over all views
 at once (docs/design.md, "Depth refinement").
 
-The flow + triangulation estimate ``s0`` gives the scene's parallax range; the Rust
-core's ``plane_sweep`` compares the reference with every view at candidate parallaxes
-``s`` (pixel ``p`` against ``view_i(p + o_i s)``), with a truncated colour + gradient
-cost aggregated by a guided filter (edge-aware), for all views together and for the
-views on each side of the reference (half-planes: near an occluding edge only one
-side sees the background). Per pixel the all-views result is kept unless a half-plane
-fits clearly better; where the sweep and ``s0`` agree, ``s0`` (the flow's finer
-sub-pixel value) is kept.
+The Rust core's ``plane_sweep`` compares the reference with every view at candidate
+parallaxes ``s`` (pixel ``p`` against ``view_i(p + o_i s)``, bicubic), with a truncated
+colour + gradient cost aggregated by a guided filter (edge-aware), for all views
+together and for the views on each side of the reference (half-planes: near an
+occluding edge only one side sees the background). First a narrow band around the flow
++ triangulation estimate ``s0`` (candidates relative to it, so windows follow its
+surface), then the whole range only where ``s0`` is unsure (filled, missing, or the
+band's minimum at its end). ``s0`` stays where the sweep agrees with it, where the
+sweep's cost is not clearly lower than ``s0``'s own, and near the data's edge.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 import lfcam._lfcam as _lfcam
@@ -55,6 +57,14 @@ class RefineParams:
     #: ``s0`` is kept where it lies within this of the sweep's result (px at the
     #: farthest view); 0: the sweep's result everywhere.
     agree_px: float = 0.5
+    #: Half-width of the band swept around ``s0`` (px at the farthest view); where its
+    #: minimum lies at the band's end, or ``s0`` failed, the whole range is swept.
+    band_px: float = 1.0
+    #: ``s0`` is replaced only where the sweep's minimum cost is at least this much
+    #: below ``s0``'s own cost (cost units, 0 .. 1): not where the curve is flat.
+    min_gain: float = 0.02
+    #: Bicubic samples of the views (bilinear if False).
+    cubic: bool = True
 
     def __post_init__(self) -> None:
         for name in ("step_px", "trunc_colour", "trunc_gradient", "eps"):
@@ -63,7 +73,7 @@ class RefineParams:
                 isinstance(v, (int, float)) and math.isfinite(v) and v > 0
             ):
                 raise InputError(f"refine.{name}: expected a finite number > 0, got {v!r}")
-        for name in ("margin_px", "agree_px"):
+        for name in ("margin_px", "agree_px", "band_px", "min_gain"):
             v = getattr(self, name)
             if isinstance(v, bool) or not (
                 isinstance(v, (int, float)) and math.isfinite(v) and v >= 0
@@ -73,6 +83,8 @@ class RefineParams:
             raise InputError(f"refine.alpha: expected 0 .. 1, got {self.alpha!r}")
         if not (0.0 < self.subset_ratio <= 1.0):
             raise InputError(f"refine.subset_ratio: expected 0 < x <= 1, got {self.subset_ratio!r}")
+        if not isinstance(self.cubic, bool):
+            raise InputError(f"refine.cubic: expected True or False, got {self.cubic!r}")
         for name, hi in (("radius", 64), ("directions", 8)):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or not (0 <= v <= hi):
@@ -143,10 +155,14 @@ def sweep_costs(
     candidates: np.ndarray,
     subsets: np.ndarray,
     params: RefineParams,
+    base: np.ndarray | None = None,
+    active: np.ndarray | None = None,
 ) -> np.ndarray:
     """The Rust core's plane sweep over views already scaled to the cost's units:
-    (H, W, S, 4) float32 with the parallax, minimum cost, curvature and second-best
-    cost per pixel and subset."""
+    (H, W, S, 5) float32 with the parallax, minimum cost, curvature, second-best cost
+    and cost at the candidate nearest 0 per pixel and subset; with ``base`` the
+    candidates are offsets from it, with ``active`` only those pixels are wanted
+    (others NaN)."""
     v = np.ascontiguousarray(views, np.float32)
     if v.ndim == 3:
         v = v[..., None]
@@ -161,8 +177,37 @@ def sweep_costs(
         params.alpha,
         params.radius,
         params.eps,
+        base=None if base is None else np.ascontiguousarray(base, np.float32),
+        active=None if active is None else np.ascontiguousarray(active, np.uint8),
+        cubic=params.cubic,
     )
     return out
+
+
+def _pick(out: np.ndarray, ratio_limit: float) -> np.ndarray:
+    """(H, W, 1) index of the subset kept per pixel: the all-views one (0) unless a
+    half-plane's minimum cost is below ``ratio_limit`` of its."""
+    cost = out[..., 1]
+    pick = np.zeros(out.shape[:2], np.intp)
+    if out.shape[2] > 1:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ratio = cost[..., 1:] / np.maximum(cost[..., :1], 1e-12)
+        ratio = np.where(np.isfinite(ratio), ratio, np.inf)
+        best = ratio.argmin(-1)
+        clearly = np.take_along_axis(ratio, best[..., None], -1)[..., 0] < ratio_limit
+        pick = np.where(clearly, best + 1, 0)
+    return pick[..., None]
+
+
+def _near_edge(valid: np.ndarray, r: int) -> np.ndarray:
+    """Pixels within ``r`` px (square) of a pixel without data or of the image's border."""
+    if r <= 0:
+        return np.zeros(valid.shape, bool)
+    pad = np.pad(valid, r, constant_values=False)
+    k = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
+    return ~cv2.erode(pad.astype(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=0)[
+        r:-r, r:-r
+    ].astype(bool)
 
 
 def refine_parallax(
@@ -171,6 +216,7 @@ def refine_parallax(
     reference: int,
     s0: np.ndarray,
     params: RefineParams | None = None,
+    unsure: np.ndarray | None = None,
 ) -> RefineResult:
     """Refine ``s0`` by a plane sweep along the parallax lines (module notes).
 
@@ -185,6 +231,9 @@ def refine_parallax(
     s0 : (H, W) float array
         The flow + triangulation estimate (NaN: unknown).
     params : RefineParams, optional
+    unsure : (H, W) bool array, optional
+        Pixels where ``s0`` is known to be unsure (e.g. filled): swept over the whole
+        range as well.
 
     Returns
     -------
@@ -202,27 +251,48 @@ def refine_parallax(
     scale = _scale(views[reference])
     scaled = np.asarray(views, np.float32) / np.float32(scale)
     subsets = half_planes(offsets, reference, p.directions)
-    out = sweep_costs(scaled, offsets, reference, cands, subsets, p)
-    s_sub, cost, second = out[..., 0], out[..., 1], out[..., 3]
-    # The all-views result unless a half-plane's minimum is clearly lower.
-    pick = np.zeros(s0.shape, np.intp)
-    if s_sub.shape[-1] > 1:
-        ratio = cost[..., 1:] / np.maximum(cost[..., :1], 1e-12)
-        best = ratio.argmin(-1)
-        clearly = np.take_along_axis(ratio, best[..., None], -1)[..., 0] < p.subset_ratio
-        pick = np.where(clearly, best + 1, 0)
-    take = pick[..., None]
-    s = np.take_along_axis(s_sub, take, -1)[..., 0]
-    c_min = np.take_along_axis(cost, take, -1)[..., 0]
-    c_2nd = np.take_along_axis(second, take, -1)[..., 0]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        conf = np.clip((c_2nd - c_min) / np.maximum(c_2nd, 1e-12), 0.0, 1.0)
-    conf = np.where(np.isfinite(conf), conf, 0.0).astype(np.float32)
     reach = float(np.hypot(offsets[:, 0], offsets[:, 1]).max())
+    ds = p.step_px / reach
+    # 1. A narrow band around s0 (windows follow s0's surface).
+    nb = max(1, math.ceil(p.band_px / p.step_px))
+    rel = (ds * np.arange(-nb, nb + 1)).astype(np.float32)
+    known = ref_valid & np.isfinite(s0)
+    band = sweep_costs(scaled, offsets, reference, rel, subsets, p, base=s0, active=known)
+    take = _pick(band, p.subset_ratio)
+    s_b = np.take_along_axis(band[..., 0], take, -1)[..., 0]
+    c_b = np.take_along_axis(band[..., 1], take, -1)[..., 0]
+    at_s0 = band[..., 4]
+    # 2. The whole range where s0 failed, is unsure or the band's minimum is at its end.
     with np.errstate(invalid="ignore"):
-        agree = np.abs(s - s0) <= p.agree_px / reach
-    swept = ~agree & ref_valid
-    parallax = np.where(swept, s, s0).astype(np.float32)
+        at_end = np.abs(s_b - s0) >= (nb - 0.5) * ds
+    wide_px = ref_valid & (~known | at_end)
+    if unsure is not None:
+        wide_px |= ref_valid & np.asarray(unsure, bool)
+    s_new, c_new = s_b, c_b
+    conf = np.zeros(s0.shape, np.float32)
+    c_ref = np.take_along_axis(at_s0, take, -1)[..., 0]
+    if wide_px.any():
+        wide = sweep_costs(scaled, offsets, reference, cands, subsets, p, active=wide_px)
+        tw = _pick(wide, p.subset_ratio)
+        s_w = np.take_along_axis(wide[..., 0], tw, -1)[..., 0]
+        c_w = np.take_along_axis(wide[..., 1], tw, -1)[..., 0]
+        c_2nd = np.take_along_axis(wide[..., 3], tw, -1)[..., 0]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            better = wide_px & ~(c_w >= c_b)
+            cw = np.clip((c_2nd - c_w) / np.maximum(c_2nd, 1e-12), 0.0, 1.0)
+        s_new = np.where(better, s_w, s_new)
+        c_new = np.where(better, c_w, c_new)
+        c_ref = np.where(better, np.take_along_axis(at_s0, tw, -1)[..., 0], c_ref)
+        conf = np.where(wide_px & np.isfinite(cw), cw, conf).astype(np.float32)
+    # 3. s0 stays where the two agree, where the sweep's minimum is not clearly below
+    # s0's own cost (a flat curve), and within the aggregation's reach (2 radius) of the
+    # data's edge, where the views that see a sample change with the candidate.
+    with np.errstate(invalid="ignore"):
+        agree = np.abs(s_new - s0) <= p.agree_px / reach
+        clear = ~known | ~(c_ref - c_new < p.min_gain)
+    edge = _near_edge(ref_valid, 2 * p.radius)
+    swept = ref_valid & np.isfinite(s_new) & ~agree & clear & (~edge | ~known)
+    parallax = np.where(swept, s_new, s0).astype(np.float32)
     parallax[~ref_valid] = np.nan
     return RefineResult(parallax, conf, swept)
 
@@ -234,6 +304,8 @@ def plane_sweep_numpy(
     candidates: np.ndarray,
     subsets: np.ndarray,
     params: RefineParams,
+    base: np.ndarray | None = None,
+    active: np.ndarray | None = None,
 ) -> np.ndarray:
     """The numpy reference of the Rust core's ``plane_sweep`` (:func:`sweep_costs`):
     the same cost, aggregation and minimum, computed over the whole cost volume. For
@@ -241,8 +313,9 @@ def plane_sweep_numpy(
 
     Returns
     -------
-    (H, W, S, 4) float32
-        Parallax, minimum cost, curvature and second-best cost per pixel and subset.
+    (H, W, S, 5) float32
+        Parallax, minimum cost, curvature, second-best cost and the cost at the
+        candidate nearest 0 per pixel and subset.
     """
     v = np.asarray(views, np.float32)
     if v.ndim == 3:
@@ -259,25 +332,35 @@ def plane_sweep_numpy(
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
     tc, tg, a = np.float32(params.trunc_colour), np.float32(params.trunc_gradient), params.alpha
     vol = np.ones((len(cands), len(masks), h, w), np.float32)
+    b = np.zeros((h, w), np.float32) if base is None else np.asarray(base, np.float32)
     for k, s in enumerate(cands):
+        s_px = (b + s).astype(np.float64)
         per = np.full((n, h, w), np.nan, np.float32)
         for i in range(n):
             if i == reference:
                 continue
-            x = xx + np.float32(offsets[i, 0] * float(s))
-            y = yy + np.float32(offsets[i, 1] * float(s))
+            x = xx + (offsets[i, 0] * s_px).astype(np.float32)
+            y = yy + (offsets[i, 1] * s_px).astype(np.float32)
             inside = (x >= 0) & (y >= 0) & (x <= w - 1) & (y <= h - 1)
             xc, yc = np.where(inside, x, 0), np.where(inside, y, 0)
             x0, y0 = np.floor(xc).astype(np.intp), np.floor(yc).astype(np.intp)
             fx, fy = (xc - x0)[..., None], (yc - y0)[..., None]
-            x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
             f = feats[i]
-            smp = (
-                (1 - fx) * (1 - fy) * f[y0, x0]
-                + fx * (1 - fy) * f[y0, x1]
-                + (1 - fx) * fy * f[y1, x0]
-                + fx * fy * f[y1, x1]
-            )
+            if params.cubic:
+                wx, wy = _cubic_weights(fx), _cubic_weights(fy)
+                smp = np.zeros((h, w, f.shape[-1]), np.float32)
+                for a_ in range(4):
+                    ya_ = np.clip(y0 + a_ - 1, 0, h - 1)
+                    for b_ in range(4):
+                        smp += wy[a_] * wx[b_] * f[ya_, np.clip(x0 + b_ - 1, 0, w - 1)]
+            else:
+                x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
+                smp = (
+                    (1 - fx) * (1 - fy) * f[y0, x0]
+                    + fx * (1 - fy) * f[y0, x1]
+                    + (1 - fx) * fy * f[y1, x0]
+                    + fx * fy * f[y1, x1]
+                )
             ok = inside & np.isfinite(smp).all(-1)
             colour = np.abs(smp[..., :c] - ref[..., :c]).mean(-1)
             grad = np.abs(smp[..., c] - ref[..., c]) + np.abs(smp[..., c + 1] - ref[..., c + 1])
@@ -289,7 +372,7 @@ def plane_sweep_numpy(
             sub = per[m]
             cnt = np.isfinite(sub).sum(0)
             mean = np.nansum(sub, 0) / np.maximum(cnt, 1)
-            vol[k, j] = np.where((cnt > 0) & ref_ok, mean, 1.0)
+            vol[k, j] = np.where((cnt > 0) & ref_ok & np.isfinite(b), mean, 1.0)
     if params.radius > 0:
         guide = np.where(np.isfinite(grey[reference]), grey[reference], 0).astype(np.float64)
         r = params.radius
@@ -327,11 +410,27 @@ def plane_sweep_numpy(
     second = np.where(far, vol, np.inf).min(0)
     out = np.stack(
         [
-            cands[kb] + shift * ds,
+            b + cands[kb] + shift * ds,
             best,
             np.where((kb > 0) & (kb < n_k - 1), curv / ds**2, 0.0),
             second,
+            vol[int(np.abs(cands).argmin())],
         ],
         -1,
     )
-    return np.moveaxis(out, 0, 2).astype(np.float32)
+    out = np.moveaxis(out, 0, 2).astype(np.float32)
+    out[~np.isfinite(b)] = np.nan
+    if active is not None:
+        out[~np.asarray(active, bool)] = np.nan
+    return out
+
+
+def _cubic_weights(t: np.ndarray) -> list[np.ndarray]:
+    """OpenCV's bicubic weights (a = -0.75) of the four taps for offsets ``t`` in 0..1."""
+    a = np.float32(-0.75)
+    x = t + 1
+    w0 = ((a * x - 5 * a) * x + 8 * a) * x - 4 * a
+    w1 = ((a + 2) * t - (a + 3)) * t * t + 1
+    u = 1 - t
+    w2 = ((a + 2) * u - (a + 3)) * u * u + 1
+    return [w0, w1, w2, 1 - w0 - w1 - w2]

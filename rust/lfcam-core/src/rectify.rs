@@ -42,7 +42,9 @@ use crate::remap::{
     Bicubic, Bilinear, BilinearQ32, Lanes, MAX_CHANNELS, Packed, Sampler, Taps, any_nan, first,
     four, last, lerp_lanes,
 };
-use crate::simd::{Dispatch, Level};
+use crate::simd::Dispatch;
+#[cfg(target_arch = "x86_64")]
+use crate::simd::Level;
 
 pub use plan::RectifyPlan;
 
@@ -450,12 +452,16 @@ fn rectify_with<T: RawSample>(
             ),
         ));
     }
+    // Off x86-64 there is no SIMD build to choose: the portable one runs.
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = simd;
     let job = Job {
         raw,
         gains,
         crops: &checked.crops,
         maps,
         views,
+        #[cfg(target_arch = "x86_64")]
         simd,
     };
     match (raw.channels(), gains.channels()) {
@@ -569,7 +575,8 @@ struct Job<'a, T> {
     crops: &'a [Crop],
     maps: ViewMaps<'a>,
     views: &'a [usize],
-    /// Which builds of the loops may run.
+    /// Which builds of the loops may run (x86-64: elsewhere the portable one is all).
+    #[cfg(target_arch = "x86_64")]
     simd: &'a Dispatch,
 }
 
@@ -1096,6 +1103,7 @@ fn internal(function: &'static str, at: usize) -> Error {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::simd::Level;
 
     #[test]
     fn interp_names_round_trip() {

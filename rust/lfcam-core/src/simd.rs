@@ -525,6 +525,7 @@ fn bilinear_band_avx2<const C: usize>(
 }
 
 /// Eight offsets as four pairs.
+#[cfg(target_arch = "x86_64")]
 #[inline(always)]
 fn pairs_of([a0, a1, a2, a3, a4, a5, a6, a7]: [u32; 8]) -> [(usize, usize); 4] {
     let u = |v: u32| v as usize;

@@ -4,23 +4,30 @@
 //! (docs/design.md, "Depth refinement").
 //!
 //! For a candidate `s`, the reference pixel `p` is compared with view `i` at
-//! `p + o_i s` (bilinear). The per-view cost mixes a truncated colour difference and a
-//! truncated difference of grey gradients (the gradients survive vignetting and
-//! exposure differences between views). A subset's raw cost is the mean over its views
-//! that see the sample; it is aggregated over the window of a guided filter (He, Sun,
-//! Tang 2013) guided by the grey reference, so that windows do not mix the two sides
-//! of an image edge. Each subset keeps its minimum over the candidates, a parabola
-//! through the minimum and its neighbours (sub-candidate position), the curve's
-//! curvature there and the lowest cost at least two candidates away from the minimum
-//! (confidence). Occlusion-aware view selection (Wang, Efros, Ramamoorthi 2015): near
-//! an occluding edge the views on one side of the reference see the same point, so the
-//! caller passes subsets such as half-planes of the views and picks one per pixel.
+//! `p + o_i s` (bilinear or bicubic). The per-view cost mixes a truncated colour
+//! difference and a truncated difference of grey gradients (the gradients survive
+//! vignetting and exposure differences between views). A subset's raw cost is the mean
+//! over its views that see the sample; it is aggregated over the window of a guided
+//! filter (He, Sun, Tang 2013) guided by the grey reference, so that windows do not mix
+//! the two sides of an image edge. Each subset keeps its minimum over the candidates, a
+//! parabola through the minimum and its neighbours (sub-candidate position), the
+//! curve's curvature there, the lowest cost at least two candidates away from the
+//! minimum (confidence) and the cost at the candidate nearest 0. Occlusion-aware view
+//! selection (Wang, Efros, Ramamoorthi 2015): near an occluding edge the views on one
+//! side of the reference see the same point, so the caller passes subsets such as
+//! half-planes of the views and picks one per pixel.
+//!
+//! With a per-pixel base map the candidates are offsets from it (`s = base(p) + c_k`):
+//! a narrow band around an initial estimate, whose aggregation windows then follow
+//! that estimate's surface instead of a fronto-parallel plane. An `active` mask limits
+//! the work to the pixels wanted (and their windows' reach).
 
 use crate::error::{Error, Result};
 use crate::parallel;
 
-/// Outputs per subset and pixel: parallax, cost, curvature, second-best cost.
-pub const SWEEP_OUTPUTS: usize = 4;
+/// Outputs per subset and pixel: parallax, cost, curvature, second-best cost, cost at
+/// the candidate nearest 0 (with a base map: the base's own cost).
+pub const SWEEP_OUTPUTS: usize = 5;
 
 /// Parameters of [`plane_sweep`].
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -36,6 +43,9 @@ pub struct SweepParams {
     pub radius: usize,
     /// Regularisation of the guided filter (guide units squared).
     pub eps: f32,
+    /// Bicubic samples of the views (OpenCV's `INTER_CUBIC` kernel, a = -0.75, edge
+    /// taps clamped) instead of bilinear ones.
+    pub cubic: bool,
 }
 
 impl SweepParams {
@@ -109,7 +119,9 @@ fn features(view: &[f32], h: usize, w: usize, c: usize) -> Vec<f32> {
 /// Box means over square windows of radius `r` clipped to the image rows `0..h` and
 /// columns `0..w`, of `src` holding image rows `y0..y0 + n` (`n * w` values), written
 /// for the image rows `out_rows` (which with their windows must lie in `y0..y0 + n`)
-/// into `dst` (`out_rows.len() * w`). `tmp`: scratch.
+/// into `dst` (`out_rows.len() * w`). Direct sums of shifted rows (vectorised; a
+/// window's `2 r + 1` values per axis, so float32 keeps about 1e-7 of the mean).
+/// `tmp`: scratch.
 #[allow(clippy::too_many_arguments)]
 fn box_mean(
     src: &[f32],
@@ -121,172 +133,248 @@ fn box_mean(
     dst: &mut [f32],
     tmp: &mut Vec<f32>,
 ) {
-    // Horizontal window sums per row, by a running sum.
-    tmp.clear();
-    tmp.resize(n * w, 0.0);
-    for (row_in, row_out) in src.chunks_exact(w).zip(tmp.chunks_exact_mut(w)).take(n) {
-        let mut acc = 0.0f64;
-        let mut hi = 0usize; // next column to add
-        let mut lo = 0usize; // next column to remove
-        for (x, o) in row_out.iter_mut().enumerate() {
-            let want_hi = (x + r + 1).min(w);
-            while hi < want_hi {
-                acc += f64::from(row_in.get(hi).copied().unwrap_or(0.0));
-                hi += 1;
-            }
-            let want_lo = x.saturating_sub(r);
-            while lo < want_lo {
-                acc -= f64::from(row_in.get(lo).copied().unwrap_or(0.0));
-                lo += 1;
-            }
-            *o = acc as f32;
-        }
-    }
-    // Vertical sums of the horizontal sums, divided by the window's pixel count.
-    let count_x: Vec<f32> = (0..w)
-        .map(|x| ((x + r + 1).min(w) - x.saturating_sub(r)) as f32)
-        .collect();
-    let mut acc = vec![0.0f64; w];
     let (first, last) = (out_rows.start, out_rows.end);
-    if first >= last {
+    if first >= last || w == 0 {
         return;
     }
-    let mut hi = first.saturating_sub(r); // next row to add
-    let mut lo = hi; // next row to remove
+    // Horizontal window sums of the rows the output's windows reach.
+    let ha = first.saturating_sub(r).max(y0);
+    let hb = (last + r).min(h).min(y0 + n);
+    tmp.clear();
+    tmp.resize((hb - ha) * w, 0.0);
+    let rows_in = src.get((ha - y0) * w..(hb - y0) * w).unwrap_or_default();
+    for (row_in, row_out) in rows_in.chunks_exact(w).zip(tmp.chunks_exact_mut(w)) {
+        for d in 0..=2 * r {
+            // out[x] += in[x + d - r] where both lie in the row.
+            let (xa, sa) = if d < r { (r - d, 0) } else { (0, d - r) };
+            let len = w.saturating_sub(xa.max(sa));
+            if let (Some(o), Some(i)) = (row_out.get_mut(xa..xa + len), row_in.get(sa..sa + len)) {
+                for (ov, iv) in o.iter_mut().zip(i) {
+                    *ov += iv;
+                }
+            }
+        }
+    }
+    // Vertical sums, divided by the clipped window's pixel count.
+    let inv_x: Vec<f32> = (0..w)
+        .map(|x| 1.0 / ((x + r + 1).min(w) - x.saturating_sub(r)) as f32)
+        .collect();
     for (y, row_out) in (first..last).zip(dst.chunks_exact_mut(w)) {
-        let want_hi = (y + r + 1).min(h);
-        while hi < want_hi {
-            if let Some(row) = tmp.get((hi - y0) * w..(hi - y0 + 1) * w) {
-                for (a, v) in acc.iter_mut().zip(row) {
-                    *a += f64::from(*v);
+        let (ya, yb) = (y.saturating_sub(r).max(ha), (y + r + 1).min(hb));
+        row_out.fill(0.0);
+        for yy in ya..yb {
+            if let Some(row) = tmp.get((yy - ha) * w..(yy - ha + 1) * w) {
+                for (o, v) in row_out.iter_mut().zip(row) {
+                    *o += v;
                 }
             }
-            hi += 1;
         }
-        let want_lo = y.saturating_sub(r);
-        while lo < want_lo {
-            if let Some(row) = tmp.get((lo - y0) * w..(lo - y0 + 1) * w) {
-                for (a, v) in acc.iter_mut().zip(row) {
-                    *a -= f64::from(*v);
-                }
-            }
-            lo += 1;
-        }
-        let count_y = (want_hi - want_lo) as f32;
-        for ((o, a), cx) in row_out.iter_mut().zip(&acc).zip(&count_x) {
-            *o = *a as f32 / (cx * count_y);
+        let inv_y = 1.0 / ((y + r + 1).min(h) - y.saturating_sub(r)) as f32;
+        for (o, ix) in row_out.iter_mut().zip(&inv_x) {
+            *o *= ix * inv_y;
         }
     }
 }
 
-/// Bilinear sample of `f` features at `(x, y)` of a `h x w` image into `out`; false if
-/// the position is outside the image or a tap is not finite.
+/// OpenCV's bicubic weights (a = -0.75) for a tap offset `t` in 0..1.
 #[inline]
-fn sample(feat: &[f32], (h, w): (usize, usize), f: usize, x: f32, y: f32, out: &mut [f32]) -> bool {
-    if !(x >= 0.0 && y >= 0.0 && x <= (w - 1) as f32 && y <= (h - 1) as f32) {
-        return false;
-    }
-    let (x0, y0) = (x.floor() as usize, y.floor() as usize);
-    let (fx, fy) = (x - x0 as f32, y - y0 as f32);
-    let x1 = (x0 + 1).min(w - 1);
-    let y1 = (y0 + 1).min(h - 1);
-    let tap = |yy: usize, xx: usize| feat.get((yy * w + xx) * f..(yy * w + xx + 1) * f);
-    let (Some(a), Some(b), Some(c), Some(d)) = (tap(y0, x0), tap(y0, x1), tap(y1, x0), tap(y1, x1))
-    else {
-        return false;
-    };
-    let (wa, wb, wc, wd) = (
-        (1.0 - fx) * (1.0 - fy),
-        fx * (1.0 - fy),
-        (1.0 - fx) * fy,
-        fx * fy,
-    );
-    let mut ok = true;
-    for (k, o) in out.iter_mut().enumerate().take(f) {
-        let v = wa * a.get(k).copied().unwrap_or(f32::NAN)
-            + wb * b.get(k).copied().unwrap_or(f32::NAN)
-            + wc * c.get(k).copied().unwrap_or(f32::NAN)
-            + wd * d.get(k).copied().unwrap_or(f32::NAN);
-        ok &= v.is_finite();
-        *o = v;
-    }
-    ok
+fn cubic_weights(t: f32) -> [f32; 4] {
+    const A: f32 = -0.75;
+    let x = t + 1.0;
+    let w0 = ((A * x - 5.0 * A) * x + 8.0 * A) * x - 4.0 * A;
+    let w1 = ((A + 2.0) * t - (A + 3.0)) * t * t + 1.0;
+    let u = 1.0 - t;
+    let w2 = ((A + 2.0) * u - (A + 3.0)) * u * u + 1.0;
+    [w0, w1, w2, 1.0 - w0 - w1 - w2]
 }
 
-/// Cost of one view's sample against the reference's features (see [`SweepParams`]).
+/// Adds `wy` times the `wx`-weighted taps of the row of `feat` starting at `at` (`K`
+/// consecutive taps of `F` features) to `acc`; None if the row is out of range.
+#[inline(always)]
+fn add_row<const F: usize, const K: usize>(
+    feat: &[f32],
+    at: usize,
+    wx: &[f32; K],
+    wy: f32,
+    acc: &mut [f32; F],
+) -> Option<()> {
+    let row = feat.get(at..at + K * F)?;
+    let mut racc = [0.0f32; F];
+    for (tap, &wxv) in row.chunks_exact(F).zip(wx) {
+        for (a, v) in racc.iter_mut().zip(tap) {
+            *a += wxv * v;
+        }
+    }
+    for (a, r) in acc.iter_mut().zip(&racc) {
+        *a += wy * r;
+    }
+    Some(())
+}
+
+/// Sample of `F` features at `(x, y)` of a `h x w` image (bilinear, or bicubic with
+/// edge taps clamped; rows combined first, then the row sums); None if the position
+/// is outside the image or a tap is not finite.
 #[inline]
-fn view_cost(reference: &[f32], sampled: &[f32], c: usize, p: &SweepParams) -> f32 {
-    let mut colour = 0.0f32;
-    for k in 0..c {
-        colour += (sampled.get(k).copied().unwrap_or(0.0)
-            - reference.get(k).copied().unwrap_or(0.0))
-        .abs();
-    }
-    colour /= c as f32;
-    let g = |k: usize| {
-        (sampled.get(k).copied().unwrap_or(0.0) - reference.get(k).copied().unwrap_or(0.0)).abs()
-    };
-    let gradient = g(c) + g(c + 1);
-    (1.0 - p.alpha) * colour.min(p.trunc_colour) / p.trunc_colour
-        + p.alpha * gradient.min(p.trunc_gradient) / p.trunc_gradient
-}
-
-/// Raw (not aggregated) cost of every subset at candidate `s` for the image rows
-/// `rows`: `out[(y - rows.start) * w * n_sub + x * n_sub + j]`... stored per subset as
-/// planes: `out[j][(y - rows.start) * w + x]`. A subset none of whose views sees the
-/// sample costs 1 (the maximum), as does a reference pixel without data.
-#[allow(clippy::too_many_arguments)]
-fn raw_costs(
-    feats: &[Vec<f32>],
-    reference: usize,
-    offsets: &[[f64; 2]],
-    subsets: &[Vec<usize>],
-    s: f32,
+fn sample<const F: usize>(
+    feat: &[f32],
     (h, w): (usize, usize),
-    c: usize,
+    x: f32,
+    y: f32,
+    cubic: bool,
+) -> Option<[f32; F]> {
+    if !(x >= 0.0 && y >= 0.0 && x <= (w - 1) as f32 && y <= (h - 1) as f32) {
+        return None;
+    }
+    // Truncation is the floor for non-negative positions.
+    let (x0, y0) = (x as usize, y as usize);
+    let (fx, fy) = (x - x0 as f32, y - y0 as f32);
+    let mut acc = [0.0f32; F];
+    if cubic {
+        let (wx, wy) = (cubic_weights(fx), cubic_weights(fy));
+        let ys = [
+            y0.saturating_sub(1),
+            y0,
+            (y0 + 1).min(h - 1),
+            (y0 + 2).min(h - 1),
+        ];
+        if x0 >= 1 && x0 + 2 < w {
+            for (&yy, &wyv) in ys.iter().zip(&wy) {
+                add_row::<F, 4>(feat, (yy * w + x0 - 1) * F, &wx, wyv, &mut acc)?;
+            }
+        } else {
+            // Edge columns: one tap at a time, clamped.
+            let xs = [
+                x0.saturating_sub(1),
+                x0,
+                (x0 + 1).min(w - 1),
+                (x0 + 2).min(w - 1),
+            ];
+            for (&yy, &wyv) in ys.iter().zip(&wy) {
+                for (&xx, &wxv) in xs.iter().zip(&wx) {
+                    add_row::<F, 1>(feat, (yy * w + xx) * F, &[wxv], wyv, &mut acc)?;
+                }
+            }
+        }
+    } else {
+        let y1 = (y0 + 1).min(h - 1);
+        if x0 + 1 < w {
+            let wx = [1.0 - fx, fx];
+            add_row::<F, 2>(feat, (y0 * w + x0) * F, &wx, 1.0 - fy, &mut acc)?;
+            add_row::<F, 2>(feat, (y1 * w + x0) * F, &wx, fy, &mut acc)?;
+        } else {
+            add_row::<F, 1>(feat, (y0 * w + x0) * F, &[1.0], 1.0 - fy, &mut acc)?;
+            add_row::<F, 1>(feat, (y1 * w + x0) * F, &[1.0], fy, &mut acc)?;
+        }
+    }
+    acc.iter().all(|v| v.is_finite()).then_some(acc)
+}
+
+/// Cost of one view's sample against the reference's features (see [`SweepParams`]):
+/// `wc min(colour, tc) + wg min(gradient, tg)` with `wc = (1 - alpha) / (c tc)` over
+/// the colour differences' sum and `wg = alpha / tg`.
+#[inline]
+fn view_cost<const F: usize>(
+    reference: &[f32; F],
+    sampled: &[f32; F],
+    [tc, tg, wc, wg]: [f32; 4],
+) -> f32 {
+    let c = F - 2;
+    let mut colour = 0.0f32;
+    let mut gradient = 0.0f32;
+    for (k, (a, b)) in sampled.iter().zip(reference).enumerate() {
+        let d = (a - b).abs();
+        if k < c {
+            colour += d;
+        } else {
+            gradient += d;
+        }
+    }
+    wc * colour.min(tc) + wg * gradient.min(tg)
+}
+
+/// What [`raw_costs`] reads: every view's features, where to look and which pixels.
+struct Scene<'a> {
+    feats: &'a [Vec<f32>],
+    reference: usize,
+    offsets: &'a [[f64; 2]],
+    subsets: &'a [Vec<usize>],
+    base: Option<&'a [f32]>,
+    need: Option<&'a [u8]>,
+    dims: (usize, usize),
+}
+
+/// Raw (not aggregated) cost of every subset at candidate `s` (added to the base map,
+/// if any) for the image rows `rows`, per subset as planes:
+/// `out[j][(y - rows.start) * w + x]`. A subset none of whose views sees the sample
+/// costs 1 (the maximum), as does a reference pixel without data or outside `need`.
+fn raw_costs<const F: usize>(
+    sc: &Scene<'_>,
+    s: f32,
     rows: std::ops::Range<usize>,
     p: &SweepParams,
     out: &mut [Vec<f32>],
-    scratch: &mut Vec<f32>,
+    per_view: &mut Vec<f32>,
 ) {
-    let f = c + 2;
-    let n = feats.len();
+    let (h, w) = sc.dims;
+    let n = sc.feats.len();
     let n_rows = rows.len();
     for plane in out.iter_mut() {
         plane.clear();
         plane.resize(n_rows * w, 1.0);
     }
-    let Some(ref_feat) = feats.get(reference) else {
+    let Some(ref_feat) = sc.feats.get(sc.reference) else {
         return;
     };
-    scratch.resize(f + n, 0.0);
-    let (sampled, per_view) = scratch.split_at_mut(f);
-    let shifts: Vec<(f32, f32)> = offsets
-        .iter()
-        .map(|o| ((o[0] * f64::from(s)) as f32, (o[1] * f64::from(s)) as f32))
-        .collect();
+    per_view.clear();
+    per_view.resize(n, f32::NAN);
+    // The colour difference is the channels' sum: its truncation scales by c.
+    let c = (F - 2) as f32;
+    let weights = [
+        p.trunc_colour * c,
+        p.trunc_gradient,
+        (1.0 - p.alpha) / (p.trunc_colour * c),
+        p.alpha / p.trunc_gradient,
+    ];
     for (row_i, y) in rows.enumerate() {
         for x in 0..w {
-            let base = (y * w + x) * f;
-            let Some(r) = ref_feat.get(base..base + f) else {
+            let at = y * w + x;
+            if sc.need.is_some_and(|m| m.get(at).is_none_or(|&v| v == 0)) {
+                continue;
+            }
+            let s_px = match sc.base {
+                Some(b) => b.get(at).copied().unwrap_or(f32::NAN) + s,
+                None => s,
+            };
+            let Some(r) = ref_feat
+                .get(at * F..(at + 1) * F)
+                .and_then(|r| <&[f32; F]>::try_from(r).ok())
+            else {
                 continue;
             };
-            if !r.iter().all(|v| v.is_finite()) {
+            if !(s_px.is_finite() && r.iter().all(|v| v.is_finite())) {
                 continue;
             }
-            for (i, cost) in per_view.iter_mut().enumerate() {
+            for (i, ((cost, feat), o)) in per_view
+                .iter_mut()
+                .zip(sc.feats)
+                .zip(sc.offsets)
+                .enumerate()
+            {
                 *cost = f32::NAN;
-                if i == reference {
+                if i == sc.reference {
                     continue;
                 }
-                let (Some(feat), Some(&(dx, dy))) = (feats.get(i), shifts.get(i)) else {
-                    continue;
-                };
-                if sample(feat, (h, w), f, x as f32 + dx, y as f32 + dy, sampled) {
-                    *cost = view_cost(r, sampled, c, p);
+                let (dx, dy) = (
+                    (o[0] * f64::from(s_px)) as f32,
+                    (o[1] * f64::from(s_px)) as f32,
+                );
+                if let Some(sampled) =
+                    sample::<F>(feat, (h, w), x as f32 + dx, y as f32 + dy, p.cubic)
+                {
+                    *cost = view_cost(r, &sampled, weights);
                 }
             }
-            for (views, plane) in subsets.iter().zip(out.iter_mut()) {
+            for (views, plane) in sc.subsets.iter().zip(out.iter_mut()) {
                 let (mut sum, mut cnt) = (0.0f32, 0u32);
                 for &i in views {
                     if let Some(&v) = per_view.get(i)
@@ -306,31 +394,138 @@ fn raw_costs(
     }
 }
 
+/// A pixel-subset's running state over the candidates.
+#[derive(Debug, Clone, Copy)]
+struct Track {
+    best: f32,
+    best_k: usize,
+    left: f32,
+    right: f32,
+    second: f32,
+    /// Minimum of the slices before the previous two.
+    lag_min: f32,
+    prev1: f32,
+    prev2: f32,
+    at_zero: f32,
+}
+
+impl Track {
+    const NEW: Self = Self {
+        best: f32::INFINITY,
+        best_k: 0,
+        left: f32::NAN,
+        right: f32::NAN,
+        second: f32::INFINITY,
+        lag_min: f32::INFINITY,
+        prev1: f32::NAN,
+        prev2: f32::NAN,
+        at_zero: f32::NAN,
+    };
+
+    /// Takes the aggregated cost `q` of candidate `kk`.
+    #[inline]
+    fn push(&mut self, kk: usize, q: f32, zero_k: usize) {
+        if kk >= 2 {
+            self.lag_min = self.lag_min.min(self.prev2);
+        }
+        if kk >= 1 && self.best_k + 1 == kk {
+            self.right = q;
+        }
+        if q < self.best {
+            self.second = self.lag_min;
+            self.best = q;
+            self.best_k = kk;
+            self.left = self.prev1;
+            self.right = f32::NAN;
+        } else if kk >= self.best_k + 2 {
+            self.second = self.second.min(q);
+        }
+        if kk == zero_k {
+            self.at_zero = q;
+        }
+        self.prev2 = self.prev1;
+        self.prev1 = q;
+    }
+
+    /// The outputs (see [`plane_sweep`]) for candidates `cands` spaced `ds`, plus `base`.
+    fn outputs(&self, cands: &[f32], ds: f32, base: f32) -> [f32; SWEEP_OUTPUTS] {
+        let k = cands.len();
+        let s0 = cands.get(self.best_k).copied().unwrap_or(f32::NAN);
+        let curv = self.left - 2.0 * self.best + self.right;
+        let shift = if self.best_k == 0 || self.best_k + 1 == k || curv.is_nan() || curv <= 0.0 {
+            0.0
+        } else {
+            (0.5 * (self.left - self.right) / curv).clamp(-0.5, 0.5)
+        };
+        [
+            base + s0 + shift * ds,
+            self.best,
+            if curv.is_finite() {
+                curv / (ds * ds)
+            } else {
+                0.0
+            },
+            self.second,
+            self.at_zero,
+        ]
+    }
+}
+
+/// `mask` grown by `r` px (square): where any pixel within `r` is set.
+fn dilate(mask: &[u8], (h, w): (usize, usize), r: usize) -> Vec<u8> {
+    let mut rows = vec![0u8; h * w];
+    for (src, dst) in mask.chunks_exact(w).zip(rows.chunks_exact_mut(w)) {
+        for (x, d) in dst.iter_mut().enumerate() {
+            let lo = x.saturating_sub(r);
+            let hi = (x + r + 1).min(w);
+            *d = u8::from(src.get(lo..hi).is_some_and(|s| s.iter().any(|&v| v != 0)));
+        }
+    }
+    let mut out = vec![0u8; h * w];
+    for (y, dst) in out.chunks_exact_mut(w).enumerate() {
+        for yy in y.saturating_sub(r)..(y + r + 1).min(h) {
+            if let Some(src) = rows.get(yy * w..(yy + 1) * w) {
+                for (d, s) in dst.iter_mut().zip(src) {
+                    *d |= s;
+                }
+            }
+        }
+    }
+    out
+}
+
 /// Plane sweep of `views` along their parallax vectors over `candidates`.
 ///
 /// `views`: `n` images `h x w x c`, row-major, one after the other (NaN: no data);
 /// `offsets[i]`: view `i`'s parallax vector (px per unit parallax; the reference
-/// pixel `p` is seen at `p + o_i s`); `candidates`: increasing, equally spaced
-/// parallaxes (at least 3); `subsets`: the view index lists whose mean costs are
-/// swept (the reference is ignored in them). `out` holds `h x w x subsets x`
+/// pixel `p` is seen at `p + o_i s`); `base`: none, or an `h x w` map added to every
+/// candidate (`s = base(p) + c_k`; NaN: the pixel is skipped); `candidates`:
+/// increasing, equally spaced parallaxes (at least 3); `subsets`: the view index lists
+/// whose mean costs are swept (the reference is ignored in them); `active`: none, or
+/// an `h x w` mask of the pixels wanted (others get NaN outputs; their costs are
+/// computed only within the aggregation's reach of a wanted pixel, so wanted pixels
+/// get the same values as without the mask). `out` holds `h x w x subsets x`
 /// [`SWEEP_OUTPUTS`] values: per pixel and subset the parallax at the aggregated
 /// cost's minimum (parabola through it and its neighbours; the end candidate itself at
 /// either end of the range), that minimum cost, the parabola's curvature (cost per
-/// unit parallax squared) and the lowest cost at least two candidates from the
-/// minimum (infinite if none). Runs in lfcam's pool, in bands of rows.
+/// unit parallax squared), the lowest cost at least two candidates from the minimum
+/// (infinite if none) and the cost at the candidate nearest 0. Runs in lfcam's pool,
+/// in bands of rows.
 ///
 /// # Errors
 /// [`Error::InvalidArgument`] naming the argument if sizes disagree, `reference` is
 /// not a view, a subset names a view out of range or is empty, the candidates are not
 /// finite, increasing and equally spaced, or a parameter is out of range.
-#[allow(clippy::too_many_arguments)]
+#[allow(clippy::too_many_arguments, clippy::too_many_lines)]
 pub fn plane_sweep(
     views: &[f32],
     (n, h, w, c): (usize, usize, usize, usize),
     reference: usize,
     offsets: &[[f64; 2]],
+    base: Option<&[f32]>,
     candidates: &[f32],
     subsets: &[Vec<usize>],
+    active: Option<&[u8]>,
     params: &SweepParams,
     out: &mut [f32],
 ) -> Result<()> {
@@ -365,6 +560,19 @@ pub fn plane_sweep(
             "offsets",
             format!("expected {n} finite (x, y) pairs, got {}", offsets.len()),
         ));
+    }
+    for (name, len) in [
+        ("base", base.map(<[f32]>::len)),
+        ("active", active.map(<[u8]>::len)),
+    ] {
+        if let Some(len) = len
+            && len != h * w
+        {
+            return Err(Error::invalid_argument(
+                name,
+                format!("has {len} elements, expected {h} x {w}"),
+            ));
+        }
     }
     let k = candidates.len();
     let ds = match (candidates.first(), candidates.get(1)) {
@@ -422,17 +630,64 @@ pub fn plane_sweep(
     if h == 0 || w == 0 {
         return Ok(());
     }
+    let args = (views, (n, h, w, c), reference, offsets, base);
+    match c {
+        1 => sweep_bands::<3>(args, candidates, subsets, active, params, out),
+        2 => sweep_bands::<4>(args, candidates, subsets, active, params, out),
+        3 => sweep_bands::<5>(args, candidates, subsets, active, params, out),
+        4 => sweep_bands::<6>(args, candidates, subsets, active, params, out),
+        _ => Err(Error::invalid_argument(
+            "views",
+            format!("expected 1 to 4 channels, got {c}"),
+        )),
+    }
+}
+
+/// A task's buffers: box-filter scratch, per-view costs, subset planes, tracks.
+type Scratch = (Vec<f32>, Vec<f32>, Vec<Vec<f32>>, Vec<Track>);
+
+/// The views, their layout, the reference, the offsets and the base map.
+type Views<'a> = (
+    &'a [f32],
+    (usize, usize, usize, usize),
+    usize,
+    &'a [[f64; 2]],
+    Option<&'a [f32]>,
+);
+
+/// [`plane_sweep`] after its checks, for `F = c + 2` features per pixel.
+#[allow(clippy::too_many_arguments, clippy::too_many_lines)]
+fn sweep_bands<const F: usize>(
+    (views, (n, h, w, c), reference, offsets, base): Views<'_>,
+    candidates: &[f32],
+    subsets: &[Vec<usize>],
+    active: Option<&[u8]>,
+    params: &SweepParams,
+    out: &mut [f32],
+) -> Result<()> {
+    let plane = h * w * c;
+    let n_sub = subsets.len();
+    let row_len = w * n_sub * SWEEP_OUTPUTS;
+    let ds = candidates.get(1).copied().unwrap_or(1.0) - candidates.first().copied().unwrap_or(0.0);
+    let zero_k = candidates
+        .iter()
+        .enumerate()
+        .min_by(|a, b| a.1.abs().total_cmp(&b.1.abs()))
+        .map_or(0, |(i, _)| i);
+    let r = params.radius;
+    // The pixels whose costs are needed: the wanted ones and their windows' reach
+    // (the guided filter's two box passes: 2 r).
+    let need = active.map(|m| dilate(m, (h, w), 2 * r));
     // Every view's features once (colour, grey gradients), then the guide.
     let feats: Vec<Vec<f32>> = parallel::map_tasks(n, plane.saturating_mul(n * 4), |i| {
         Ok(views
             .get(i * plane..(i + 1) * plane)
             .map_or_else(Vec::new, |v| features(v, h, w, c)))
     })?;
-    let f = c + 2;
     let guide: Vec<f32> = feats
         .get(reference)
         .map(|ft| {
-            ft.chunks_exact(f)
+            ft.chunks_exact(F)
                 .map(|px| {
                     let g = px.iter().take(c).sum::<f32>() / c as f32;
                     if g.is_finite() { g } else { 0.0 }
@@ -440,51 +695,57 @@ pub fn plane_sweep(
                 .collect()
         })
         .unwrap_or_default();
-    let r = params.radius;
-    // A band's tasks recompute a halo of 2 r rows on each side: at least 4 r rows
-    // per band keeps that below half the work.
-    let min_rows = (4 * r).max(8);
+    let scene = Scene {
+        feats: &feats,
+        reference,
+        offsets,
+        subsets,
+        base,
+        need: need.as_deref(),
+        dims: (h, w),
+    };
+    // A band's tasks recompute a halo of 2 r rows on each side: bands of a sixth of the
+    // image per thread (at least 8 r rows) keep that a small share of the work while
+    // leaving tasks to balance.
+    let threads = parallel::num_threads().max(1);
+    let min_rows = (8 * r).max(h.div_ceil(3 * threads)).max(8);
     parallel::for_each_row_chunk_init(
         out,
         row_len,
         min_rows,
-        || (Vec::new(), Vec::new(), Vec::new()),
-        |(tmp, scratch, planes): &mut (Vec<f32>, Vec<f32>, Vec<Vec<f32>>), first, rows_out| {
+        || (Vec::new(), Vec::new(), Vec::new(), Vec::new()),
+        |(tmp, per_view, planes, tracks): &mut Scratch, first, rows_out| {
             let last = first + rows_out.len() / row_len;
+            if let Some(m) = active
+                && !m
+                    .get(first * w..last * w)
+                    .is_some_and(|a| a.iter().any(|&v| v != 0))
+            {
+                rows_out.fill(f32::NAN);
+                return Ok(());
+            }
             let ya = first.saturating_sub(2 * r);
             let yb = (last + 2 * r).min(h);
             let nb = yb - ya;
             let mid = first.saturating_sub(r)..(last + r).min(h); // stage-1 rows
             let nm = mid.len();
             let ni = last - first;
-            let band = |a: &[f32]| {
-                a.get(ya * w..yb * w)
-                    .map(<[f32]>::to_vec)
-                    .unwrap_or_default()
-            };
-            let g_band = band(&guide);
+            let g_band = guide.get(ya * w..yb * w).unwrap_or_default();
             let gg_band: Vec<f32> = g_band.iter().map(|v| v * v).collect();
             // The guide's window means and variances over the stage-1 rows.
             let mut mean_i = vec![0.0f32; nm * w];
             let mut var_i = vec![0.0f32; nm * w];
-            box_mean(&g_band, ya, nb, (h, w), r, mid.clone(), &mut mean_i, tmp);
+            box_mean(g_band, ya, nb, (h, w), r, mid.clone(), &mut mean_i, tmp);
             box_mean(&gg_band, ya, nb, (h, w), r, mid.clone(), &mut var_i, tmp);
+            // 1 / (var(I) + eps), the same for every candidate.
             for (v, m) in var_i.iter_mut().zip(&mean_i) {
-                *v -= m * m;
+                *v = 1.0 / (*v - m * m + params.eps);
             }
             let guide_inner = guide.get(first * w..last * w).unwrap_or_default();
             planes.resize_with(n_sub, Vec::new);
-            // Per subset: running minimum and its neighbours, second best, the
-            // previous two aggregated slices and the minimum of all slices before them.
             let m = ni * w;
-            let mut best = vec![f32::INFINITY; n_sub * m];
-            let mut best_k = vec![0usize; n_sub * m];
-            let mut left = vec![f32::NAN; n_sub * m];
-            let mut right = vec![f32::NAN; n_sub * m];
-            let mut second = vec![f32::INFINITY; n_sub * m];
-            let mut lag_min = vec![f32::INFINITY; n_sub * m];
-            let mut prev1 = vec![f32::NAN; n_sub * m];
-            let mut prev2 = vec![f32::NAN; n_sub * m];
+            tracks.clear();
+            tracks.resize(n_sub * m, Track::NEW);
             let mut agg = vec![0.0f32; m];
             let (mut mp, mut mip, mut a, mut b) = (
                 vec![0.0f32; nm * w],
@@ -495,19 +756,7 @@ pub fn plane_sweep(
             let (mut ma, mut mb) = (vec![0.0f32; m], vec![0.0f32; m]);
             let mut ip = vec![0.0f32; nb * w];
             for (kk, &s) in candidates.iter().enumerate() {
-                raw_costs(
-                    &feats,
-                    reference,
-                    offsets,
-                    subsets,
-                    s,
-                    (h, w),
-                    c,
-                    ya..yb,
-                    params,
-                    planes,
-                    scratch,
-                );
+                raw_costs::<F>(&scene, s, ya..yb, params, planes, per_view);
                 for (j, p) in planes.iter().enumerate() {
                     if r == 0 {
                         agg.copy_from_slice(
@@ -515,22 +764,22 @@ pub fn plane_sweep(
                         );
                     } else {
                         // Guided filter: q = mean(a) I + mean(b), a = cov(I, p) / (var(I) + eps).
-                        for ((o, pv), gv) in ip.iter_mut().zip(p).zip(&g_band) {
+                        for ((o, pv), gv) in ip.iter_mut().zip(p).zip(g_band) {
                             *o = pv * gv;
                         }
                         box_mean(p, ya, nb, (h, w), r, mid.clone(), &mut mp, tmp);
                         box_mean(&ip, ya, nb, (h, w), r, mid.clone(), &mut mip, tmp);
-                        for t in 0..nm * w {
-                            let (Some(&mi), Some(&vi), Some(&mpv), Some(&mipv)) =
-                                (mean_i.get(t), var_i.get(t), mp.get(t), mip.get(t))
-                            else {
-                                continue;
-                            };
-                            let av = (mipv - mi * mpv) / (vi + params.eps);
-                            if let (Some(ao), Some(bo)) = (a.get_mut(t), b.get_mut(t)) {
-                                *ao = av;
-                                *bo = mpv - av * mi;
-                            }
+                        for (((((ao, bo), mi), vi), mpv), mipv) in a
+                            .iter_mut()
+                            .zip(b.iter_mut())
+                            .zip(&mean_i)
+                            .zip(&var_i)
+                            .zip(&mp)
+                            .zip(&mip)
+                        {
+                            let av = (mipv - mi * mpv) * vi;
+                            *ao = av;
+                            *bo = mpv - av * mi;
                         }
                         let mid0 = mid.start;
                         box_mean(&a, mid0, nm, (h, w), r, first..last, &mut ma, tmp);
@@ -540,95 +789,24 @@ pub fn plane_sweep(
                             *o = av * gv + bv;
                         }
                     }
-                    let off = j * m;
-                    for (t, &q) in agg.iter().enumerate() {
-                        let u = off + t;
-                        let (
-                            Some(bst),
-                            Some(bk),
-                            Some(lf),
-                            Some(rt),
-                            Some(sc),
-                            Some(lm),
-                            Some(p1),
-                            Some(p2),
-                        ) = (
-                            best.get(u).copied(),
-                            best_k.get(u).copied(),
-                            left.get(u).copied(),
-                            right.get(u).copied(),
-                            second.get(u).copied(),
-                            lag_min.get(u).copied(),
-                            prev1.get(u).copied(),
-                            prev2.get(u).copied(),
-                        )
-                        else {
-                            continue;
-                        };
-                        let lm = if kk >= 2 { lm.min(p2) } else { lm };
-                        let (mut bst, mut bk, mut lf, mut rt, mut sc) = (bst, bk, lf, rt, sc);
-                        if kk >= 1 && bk == kk - 1 {
-                            rt = q;
-                        }
-                        if q < bst {
-                            sc = lm;
-                            bst = q;
-                            bk = kk;
-                            lf = p1;
-                            rt = f32::NAN;
-                        } else if kk >= bk + 2 {
-                            sc = sc.min(q);
-                        }
-                        for (arr, v) in [
-                            (&mut best, bst),
-                            (&mut left, lf),
-                            (&mut right, rt),
-                            (&mut second, sc),
-                            (&mut lag_min, lm),
-                            (&mut prev2, p1),
-                            (&mut prev1, q),
-                        ] {
-                            if let Some(x) = arr.get_mut(u) {
-                                *x = v;
-                            }
-                        }
-                        if let Some(x) = best_k.get_mut(u) {
-                            *x = bk;
+                    if let Some(tr) = tracks.get_mut(j * m..(j + 1) * m) {
+                        for (t, &q) in tr.iter_mut().zip(&agg) {
+                            t.push(kk, q, zero_k);
                         }
                     }
                 }
             }
-            // Parabola through the minimum and its neighbours.
             for (t, px) in rows_out.chunks_exact_mut(n_sub * SWEEP_OUTPUTS).enumerate() {
+                let at = first * w + t;
+                let wanted = active.is_none_or(|m| m.get(at).is_some_and(|&v| v != 0));
+                let b0 = base.map_or(0.0, |b| b.get(at).copied().unwrap_or(f32::NAN));
                 for (j, o) in px.chunks_exact_mut(SWEEP_OUTPUTS).enumerate() {
-                    let u = j * m + t;
-                    let (Some(&bst), Some(&bk), Some(&lf), Some(&rt), Some(&sc)) = (
-                        best.get(u),
-                        best_k.get(u),
-                        left.get(u),
-                        right.get(u),
-                        second.get(u),
-                    ) else {
-                        continue;
-                    };
-                    let s0 = candidates.get(bk).copied().unwrap_or(f32::NAN);
-                    let curv = lf - 2.0 * bst + rt;
-                    let shift = if bk == 0 || bk + 1 == k || curv.is_nan() || curv <= 0.0 {
-                        0.0
-                    } else {
-                        (0.5 * (lf - rt) / curv).clamp(-0.5, 0.5)
-                    };
-                    let vals = [
-                        s0 + shift * ds,
-                        bst,
-                        if curv.is_finite() {
-                            curv / (ds * ds)
-                        } else {
-                            0.0
-                        },
-                        sc,
-                    ];
-                    o.copy_from_slice(&vals);
+                    match tracks.get(j * m + t) {
+                        Some(tr) if wanted && b0.is_finite() => {
+                            o.copy_from_slice(&tr.outputs(candidates, ds, b0));
+                        }
+                        _ => o.fill(f32::NAN),
+                    }
                 }
             }
             Ok(())
@@ -641,6 +819,25 @@ pub fn plane_sweep(
 mod tests {
     use super::*;
 
+    /// Views of `tex` at a constant parallax `s`: the reference pixel p is at p + o s in
+    /// view i, so view_i(q) = tex(q - o s).
+    fn shifted_views(
+        tex: impl Fn(f32, f32) -> f32,
+        offsets: &[[f64; 2]],
+        s: f32,
+        (h, w): (usize, usize),
+    ) -> Vec<f32> {
+        let mut views = Vec::new();
+        for o in offsets {
+            for y in 0..h {
+                for x in 0..w {
+                    views.push(tex(x as f32 - o[0] as f32 * s, y as f32 - o[1] as f32 * s));
+                }
+            }
+        }
+        views
+    }
+
     /// A textured image shifted by a constant parallax: the sweep finds it.
     #[test]
     fn finds_a_constant_shift() {
@@ -650,18 +847,7 @@ mod tests {
         };
         let offsets = [[0.0, 0.0], [1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]];
         let s_true = 0.8f32;
-        let mut views = Vec::new();
-        for o in &offsets {
-            for y in 0..h {
-                for x in 0..w {
-                    // The reference pixel p is at p + o s in view i: view_i(q) = ref(q - o s).
-                    views.push(tex(
-                        x as f32 - o[0] as f32 * s_true,
-                        y as f32 - o[1] as f32 * s_true,
-                    ));
-                }
-            }
-        }
+        let views = shifted_views(tex, &offsets, s_true, (h, w));
         let candidates: Vec<f32> = (0..21).map(|k| -1.0 + 0.1 * k as f32).collect();
         let subsets = vec![vec![1, 2, 3, 4], vec![1, 3]];
         let params = SweepParams {
@@ -670,6 +856,7 @@ mod tests {
             alpha: 0.5,
             radius: 2,
             eps: 1e-4,
+            cubic: false,
         };
         let mut out = vec![0.0f32; h * w * 2 * SWEEP_OUTPUTS];
         plane_sweep(
@@ -677,8 +864,10 @@ mod tests {
             (5, h, w, c),
             0,
             &offsets,
+            None,
             &candidates,
             &subsets,
+            None,
             &params,
             &mut out,
         )
@@ -686,6 +875,87 @@ mod tests {
         for y in 4..h - 4 {
             for x in 4..w - 4 {
                 let s = out[(y * w + x) * 2 * SWEEP_OUTPUTS];
+                assert!((s - s_true).abs() < 0.03, "({x}, {y}): {s}");
+            }
+        }
+    }
+
+    /// A base map moves the candidates; a mask leaves the wanted pixels' values as
+    /// they are; bicubic samples find the shift too.
+    #[test]
+    fn base_mask_and_cubic() {
+        let (h, w) = (36, 44);
+        let tex = |x: f32, y: f32| (0.41 * x).sin() * (0.29 * y).cos() + 0.4 * (0.13 * x).cos();
+        let offsets = [[0.0, 0.0], [1.0, 0.0], [-1.0, 0.0], [0.0, 1.0]];
+        let s_true = 0.6f32;
+        let views = shifted_views(tex, &offsets, s_true, (h, w));
+        let subsets = vec![vec![1, 2, 3], vec![1, 3]];
+        let mut params = SweepParams {
+            trunc_colour: 1.0,
+            trunc_gradient: 1.0,
+            alpha: 0.5,
+            radius: 2,
+            eps: 1e-4,
+            cubic: false,
+        };
+        let run = |base: Option<&[f32]>, cands: &[f32], active: Option<&[u8]>, p: &SweepParams| {
+            let mut out = vec![0.0f32; h * w * 2 * SWEEP_OUTPUTS];
+            plane_sweep(
+                &views,
+                (4, h, w, 1),
+                0,
+                &offsets,
+                base,
+                cands,
+                &subsets,
+                active,
+                p,
+                &mut out,
+            )
+            .unwrap();
+            out
+        };
+        let abs: Vec<f32> = (0..9).map(|k| 0.2 + 0.1 * k as f32).collect();
+        let rel: Vec<f32> = abs.iter().map(|v| v - 0.5).collect();
+        let base = vec![0.5f32; h * w];
+        let a = run(None, &abs, None, &params);
+        let b = run(Some(&base), &rel, None, &params);
+        let mut mask = vec![0u8; h * w];
+        for y in 10..14 {
+            for x in 5..30 {
+                mask[y * w + x] = 1;
+            }
+        }
+        let m = run(Some(&base), &rel, Some(&mask), &params);
+        for i in 0..h * w {
+            for o in 0..2 * SWEEP_OUTPUTS {
+                let (va, vb, vm) = (
+                    a[i * 2 * SWEEP_OUTPUTS + o],
+                    b[i * 2 * SWEEP_OUTPUTS + o],
+                    m[i * 2 * SWEEP_OUTPUTS + o],
+                );
+                // The last output is the cost at the candidate nearest 0: 0.2 vs the base.
+                if o % SWEEP_OUTPUTS != SWEEP_OUTPUTS - 1 {
+                    assert!((va - vb).abs() <= 1e-5, "{i} {o}: {va} {vb}");
+                }
+                if mask[i] == 1 {
+                    assert!(
+                        vm == vb || (vm.is_nan() && vb.is_nan()),
+                        "{i} {o}: {vm} {vb}"
+                    );
+                } else {
+                    assert!(vm.is_nan());
+                }
+            }
+            // The base's own cost is the cost at candidate 0.5 (index 3).
+            let at_base = b[i * 2 * SWEEP_OUTPUTS + SWEEP_OUTPUTS - 1];
+            assert!(at_base >= b[i * 2 * SWEEP_OUTPUTS + 1]);
+        }
+        params.cubic = true;
+        let c = run(Some(&base), &rel, None, &params);
+        for y in 4..h - 4 {
+            for x in 4..w - 4 {
+                let s = c[(y * w + x) * 2 * SWEEP_OUTPUTS];
                 assert!((s - s_true).abs() < 0.03, "({x}, {y}): {s}");
             }
         }
@@ -721,10 +991,22 @@ mod tests {
             alpha: 0.5,
             radius: 1,
             eps: 1e-4,
+            cubic: false,
         };
         let mut out = vec![0.0f32; 4 * 4 * SWEEP_OUTPUTS];
         let call = |cands: &[f32], subs: &[Vec<usize>], out: &mut [f32]| {
-            plane_sweep(&views, (2, 4, 4, 1), 0, &offsets, cands, subs, &p, out)
+            plane_sweep(
+                &views,
+                (2, 4, 4, 1),
+                0,
+                &offsets,
+                None,
+                cands,
+                subs,
+                None,
+                &p,
+                out,
+            )
         };
         assert!(call(&[0.0, 1.0], &[vec![1]], &mut out).is_err());
         assert!(call(&[0.0, 1.0, 3.0], &[vec![1]], &mut out).is_err());

@@ -63,7 +63,9 @@
 use crate::error::{Error, Result};
 use crate::image::ImageView;
 use crate::parallel;
-use crate::simd::{self, Dispatch, Level};
+#[cfg(target_arch = "x86_64")]
+use crate::simd::Level;
+use crate::simd::{self, Dispatch};
 
 /// Defines `fn $name(a: X, ...) -> X` (or `-> Mask`) applying `$op` register by
 /// register, compiled for the target feature `$feature`: the register kernels of
@@ -366,10 +368,12 @@ struct Setup<'a> {
     /// `1 / (CONFIDENCE_INFO * sum |o_i|^2)`.
     info_scale: f32,
     /// Which builds may run (see [`crate::simd`]): of the general path's loops, and of
-    /// the few-view paths (module `fixed`).
+    /// the few-view paths (module `fixed`); x86-64 only, elsewhere the portable
+    /// general path is all.
+    #[cfg(target_arch = "x86_64")]
     simd: &'a Dispatch,
-    /// Whether the few-view paths may run (tests turn them off, to compare).
-    #[cfg_attr(not(target_arch = "x86_64"), allow(dead_code))]
+    /// Whether the few-view paths (x86-64) may run (tests turn them off, to compare).
+    #[cfg(target_arch = "x86_64")]
     few_view: bool,
 }
 
@@ -382,6 +386,9 @@ impl<'a> Setup<'a> {
         params: &Params,
         simd: &'a Dispatch,
     ) -> Result<Self> {
+        // Off x86-64 there is no SIMD build to choose: the portable one runs.
+        #[cfg(not(target_arch = "x86_64"))]
+        let _ = simd;
         let [n, h, w, c] = flows.shape();
         if c != 2 {
             return Err(Error::invalid_argument(
@@ -487,7 +494,9 @@ impl<'a> Setup<'a> {
             half_network,
             params: *params,
             info_scale: (1.0 / (f64::from(CONFIDENCE_INFO) * total)) as f32,
+            #[cfg(target_arch = "x86_64")]
             simd,
+            #[cfg(target_arch = "x86_64")]
             few_view: true,
         })
     }
@@ -1193,8 +1202,14 @@ fn triangulate_with(
     simd: &Dispatch,
     few_view: bool,
 ) -> Result<()> {
-    let mut setup = Setup::new(flows, weights, offsets, reference, params, simd)?;
-    setup.few_view = few_view;
+    // Off x86-64 there are no few-view paths to turn off.
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = few_view;
+    let setup = Setup {
+        #[cfg(target_arch = "x86_64")]
+        few_view,
+        ..Setup::new(flows, weights, offsets, reference, params, simd)?
+    };
     let (h, w) = (setup.height(), setup.width());
     let pixels = h * w;
     let lens = [
@@ -1234,6 +1249,7 @@ fn triangulate_with(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::simd::Level;
 
     #[test]
     fn networks_sort_every_zero_one_input() {
@@ -1488,6 +1504,7 @@ mod tests {
     }
 
     /// The same bits (any NaN for NaN).
+    #[cfg(target_arch = "x86_64")]
     fn same_bits(a: &[f32], b: &[f32]) -> bool {
         a.iter()
             .zip(b)

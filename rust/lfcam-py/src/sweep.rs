@@ -11,10 +11,12 @@ use crate::errors::{guarded, input_error};
 ///
 /// views: (N, H, W, C) float32; offsets: (N, 2) float64; candidates: (K,) float32,
 /// increasing and equally spaced; subsets: (S, N) uint8, non-zero where a view belongs
-/// to a subset; all C-contiguous. Returns a new (H, W, S, 4) float32 array: per pixel
-/// and subset the parallax, cost, curvature and second-best cost.
+/// to a subset; base: None or (H, W) float32 added to the candidates; active: None or
+/// (H, W) uint8, the pixels wanted; cubic: bicubic samples; all C-contiguous. Returns
+/// a new (H, W, S, 5) float32 array: per pixel and subset the parallax, cost,
+/// curvature, second-best cost and the cost at the candidate nearest 0.
 #[pyfunction]
-#[pyo3(signature = (views, offsets, reference, candidates, subsets, trunc_colour, trunc_gradient, alpha, radius, eps))]
+#[pyo3(signature = (views, offsets, reference, candidates, subsets, trunc_colour, trunc_gradient, alpha, radius, eps, base=None, active=None, cubic=false))]
 #[allow(clippy::too_many_arguments)]
 pub fn plane_sweep<'py>(
     py: Python<'py>,
@@ -28,6 +30,9 @@ pub fn plane_sweep<'py>(
     alpha: f64,
     radius: i64,
     eps: f64,
+    base: Option<&Bound<'py, PyAny>>,
+    active: Option<&Bound<'py, PyAny>>,
+    cubic: bool,
 ) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
     guarded(py, "plane_sweep", || {
         let count = |value: i64, arg: &str| {
@@ -41,6 +46,7 @@ pub fn plane_sweep<'py>(
             alpha: alpha as f32,
             radius: count(radius, "radius")?,
             eps: eps as f32,
+            cubic,
         };
         let views_ro = typed::<f32>(views, "views", "float32")?;
         let [n, h, w, c] = match *views_ro.shape() {
@@ -89,6 +95,34 @@ pub fn plane_sweep<'py>(
                     .collect()
             })
             .collect();
+        let map_shape = |shape: &[usize], arg: &str| {
+            if shape == [h, w] {
+                Ok(())
+            } else {
+                Err(input_error(
+                    py,
+                    arg,
+                    format!("expected shape ({h}, {w}), got {shape:?}"),
+                ))
+            }
+        };
+        let base_ro = base
+            .map(|b| typed::<f32>(b, "base", "float32"))
+            .transpose()?;
+        if let Some(b) = &base_ro {
+            map_shape(b.shape(), "base")?;
+        }
+        let active_ro = active
+            .map(|a| typed::<u8>(a, "active", "uint8"))
+            .transpose()?;
+        if let Some(a) = &active_ro {
+            map_shape(a.shape(), "active")?;
+        }
+        let base_s = base_ro.as_ref().map(|b| c_slice(b, "base")).transpose()?;
+        let active_s = active_ro
+            .as_ref()
+            .map(|a| c_slice(a, "active"))
+            .transpose()?;
         let views_s = c_slice(&views_ro, "views")?;
         let cand_s = c_slice(&cand_ro, "candidates")?;
         let out = new_array::<f32>(py, &[h, w, n_sub, SWEEP_OUTPUTS])?;
@@ -98,8 +132,10 @@ pub fn plane_sweep<'py>(
                 (n, h, w, c),
                 reference,
                 offset_rows,
+                base_s,
                 cand_s,
                 &lists,
+                active_s,
                 &params,
                 slice,
             )

@@ -256,7 +256,8 @@ struct BtvStep<'a> {
     step: f32,
     lambda: f32,
     eps: f32,
-    /// Which builds of the loops may run.
+    /// Which builds of the loops may run (x86-64: elsewhere the portable one is all).
+    #[cfg(target_arch = "x86_64")]
     simd: &'a Dispatch,
 }
 
@@ -587,6 +588,9 @@ fn btv_deblur_with(
         .collect();
     let row_len = w * c;
     let min_rows = btv_min_rows(h, taps.len() / 2, p.window);
+    // Off x86-64 there is no SIMD build to choose: the portable one runs.
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = simd;
     let mut other = vec![0f32; n];
     // `x` and `other` take turns as the estimate read and the one written.
     for it in 0..p.iterations {
@@ -608,6 +612,7 @@ fn btv_deblur_with(
             step: p.step,
             lambda: p.lambda,
             eps: p.eps,
+            #[cfg(target_arch = "x86_64")]
             simd,
         };
         parallel::for_each_row_chunk_min(dst, row_len, min_rows, |first, rows| {

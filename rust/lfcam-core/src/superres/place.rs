@@ -127,6 +127,9 @@ fn place_samples_with(
         ));
     }
     let offs: Vec<[f32; 2]> = offsets.iter().map(|o| [o[0] as f32, o[1] as f32]).collect();
+    // Off x86-64 there is no SIMD build to choose: the portable one runs.
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = simd;
     let job = PlaceJob {
         inv,
         view,
@@ -136,6 +139,7 @@ fn place_samples_with(
         w,
         iterations: params.iterations,
         tolerance: params.tolerance,
+        #[cfg(target_arch = "x86_64")]
         simd,
     };
     parallel::for_each_row_chunk(out, 2, |first, rows| {
@@ -154,6 +158,8 @@ struct PlaceJob<'a> {
     w: usize,
     iterations: usize,
     tolerance: f32,
+    /// Which builds of the loops may run (x86-64: elsewhere the portable one is all).
+    #[cfg(target_arch = "x86_64")]
     simd: &'a Dispatch,
 }
 
