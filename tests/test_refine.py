@@ -167,3 +167,20 @@ def test_depth_from_views_with_refine(small_scene) -> None:
     assert "refine" in res.timings
     err = np.abs(res.parallax - truth)[6:-6, 6:-6]
     assert np.mean(~(err <= 0.25)) <= 0.03
+
+
+def test_refinement_keeps_an_exact_estimate_and_the_data_edge(small_scene) -> None:
+    views, offsets, ref, truth = small_scene
+    exact = refine_parallax(views, offsets, ref, truth.astype(np.float32))
+    assert not exact.swept.any()
+    np.testing.assert_array_equal(exact.parallax, truth)
+    # An estimate 0.4 off everywhere: the band finds the truth inside, but within
+    # 2 radius of the data's edge (here the image border) the estimate is kept.
+    p = RefineParams()
+    off = refine_parallax(views, offsets, ref, truth.astype(np.float32) + 0.4, p)
+    e = 2 * p.radius
+    assert not off.swept[:e].any()
+    assert not off.swept[:, -e:].any()
+    inner = np.abs(off.parallax - truth)[e:-e, e:-e]
+    # Measured: 99.8% of the inner pixels swept and within 0.05 px of the truth.
+    assert np.mean(inner <= 0.05) >= 0.99
