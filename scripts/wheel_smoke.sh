@@ -36,7 +36,8 @@ done
 arch=${target%%-*}
 py=${PYTHON:-python3}
 work=$(mktemp -d "${TMPDIR:-/tmp}/lfcam-wheel.XXXXXX")
-trap 'rm -rf "$work"' EXIT
+prepare_pids=()  # background installs (below), stopped on exit
+trap 'kill "${prepare_pids[@]}" 2>/dev/null || true; rm -rf "$work"' EXIT
 trap 'exit 130' INT TERM  # the EXIT trap cleans up on a signal too
 say() { echo "[wheel_smoke] $*"; }
 
@@ -48,6 +49,32 @@ tools="$work/tools/bin"
 if [ -z "$wheel" ]; then
     "$tools/python" -m pip install -q "maturin>=1.5,<2" "ziglang>=0.11"
 fi
+
+# The smoke venvs' dependencies install (network-bound) while the wheel builds (CPU-bound):
+# the newest versions pyproject.toml allows in one venv, the lowest in the other.
+pyver=$("$py" -c 'import sys; print(f"{sys.version_info[0]}.{sys.version_info[1]}")')
+prepare_venv() {  # NAME RESOLUTION
+    "$tools/uv" pip compile pyproject.toml --resolution "$2" --python-version "$pyver" \
+        --only-binary :all: --no-header --no-annotate -q -o "$work/$1.txt"
+    "$py" -m venv "$work/$1"
+    "$work/$1/bin/python" -m pip install -q -r "$work/$1.txt"
+}
+if [ "$smoke" = 1 ] && [ "$arch" = "$(uname -m)" ]; then
+    for setup in "smoke highest" "lowest lowest-direct"; do
+        # shellcheck disable=SC2086
+        prepare_venv $setup > "$work/prepare-${setup%% *}.log" 2>&1 &
+        prepare_pids+=($!)
+    done
+fi
+prepared() {  # wait for the venvs; show a failed preparation's log
+    local ok=0
+    for pid in "${prepare_pids[@]}"; do wait "$pid" || ok=1; done
+    if [ "$ok" != 0 ]; then
+        cat "$work"/prepare-*.log >&2
+        echo "wheel_smoke.sh: installing the smoke venvs' dependencies failed" >&2
+        exit 1
+    fi
+}
 
 if [ -z "$wheel" ]; then
     say "building the $target wheel (release, manylinux2014, abi3, stripped)"
@@ -119,7 +146,7 @@ if [ "$arch" != "$(uname -m)" ]; then
 fi
 
 say "smoke test: a fresh venv with no Rust toolchain on PATH"
-"$py" -m venv "$work/smoke"
+prepared
 clean_path="$work/smoke/bin:/usr/local/bin:/usr/bin:/bin"
 for tool in cargo rustc rustup; do
     if PATH="$clean_path" command -v "$tool" >/dev/null 2>&1; then
@@ -149,16 +176,11 @@ PY
 )
 
 say "smoke test at the lowest dependency versions pyproject.toml allows"
-pyver=$("$py" -c 'import sys; print(f"{sys.version_info[0]}.{sys.version_info[1]}")')
-"$tools/uv" pip compile pyproject.toml --resolution lowest-direct --python-version "$pyver" \
-    --only-binary :all: --no-header --no-annotate -q -o "$work/lowest.txt"
 tr '\n' ' ' < "$work/lowest.txt"; echo
-"$py" -m venv "$work/lowest"
 (
     cd "$work"
     export PATH="$work/lowest/bin:/usr/local/bin:/usr/bin:/bin"
     unset CARGO_HOME RUSTUP_HOME VIRTUAL_ENV PYTHONPATH
-    python -m pip install -q -r "$work/lowest.txt"
     python -m pip install -q --no-deps "$wheel"
     # To a file, then its head: piping the demo into `head` would end it with SIGPIPE
     # (exit 141) whenever head closes the pipe before the demo's last line.

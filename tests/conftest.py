@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -39,6 +40,30 @@ def _printable(text: str) -> str:
     """Text with any unpaired surrogate (a non-UTF-8 file name decoded by
     ``os.fsdecode``) written as an escape, so the report can be sent as UTF-8."""
     return text.encode("utf-8", "backslashreplace").decode("utf-8")
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config: pytest.Config, log):
+    """pytest-xdist's ``--dist loadfile`` (each test file whole on one worker, so its
+    module fixtures are built once), with every file that uses the reference camera in
+    one unit, so the session's most expensive fixture is built once."""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadFileScheduling
+
+    here = Path(__file__).parent
+    shared = {
+        path.relative_to(config.rootpath).as_posix()
+        for path in here.glob("test_*.py")
+        if "reference_camera" in path.read_text(encoding="utf-8")
+    }
+
+    class Scheduling(LoadFileScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            scope = super()._split_scope(nodeid)
+            return "reference_camera" if scope in shared else scope
+
+    return Scheduling(config, log)
 
 
 @pytest.hookimpl(hookwrapper=True)
