@@ -183,6 +183,7 @@ Resample = Callable[[int, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 def _flow_pass(
     a: np.ndarray,
+    grid: np.ndarray,
     view: np.ndarray,
     mask: np.ndarray,
     both: np.ndarray,
@@ -190,10 +191,9 @@ def _flow_pass(
     start: np.ndarray | None,
     round_trip: bool = True,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Flow from the prepared reference ``a`` to ``view`` and the pixels it passes at:
-    inside ``both``, landing inside ``mask`` and (``round_trip``) with a forward-backward
-    round trip within FB_THRESHOLD_PX."""
-    grid = identity_grid(*a.shape[:2])
+    """Flow from the prepared reference ``a`` (pixel grid ``grid``) to ``view`` and the
+    pixels it passes at: inside ``both``, landing inside ``mask`` and (``round_trip``)
+    with a forward-backward round trip within FB_THRESHOLD_PX."""
     v = prepare(view)
     f = dis_flow(a, v, params, init=start)
     good = both & (remap(mask.astype(np.float32), grid + f) > 0.99)
@@ -227,6 +227,7 @@ def measure_parallax(
     """
     N = views.shape[0]
     a = prepare(views[ref])
+    grid = identity_grid(*a.shape[:2])
     out = np.full((N, 2), np.nan) if init else np.zeros((N, 2))
     cover = np.zeros(N)
     spread = np.zeros(N)
@@ -249,14 +250,14 @@ def measure_parallax(
         start = None
         if init:
             start = np.broadcast_to(np.asarray(init[i], np.float32), (*a.shape[:2], 2))
-        f, good = _flow_pass(a, views[i], masks[i], both, params, start)
+        f, good = _flow_pass(a, grid, views[i], masks[i], both, params, start)
         if resample is not None and good.sum() >= MIN_GOOD_PIXELS:
             # The pixels the first flow passed at, measured again (forward only: its
             # round trip was checked).
             first = np.median(f[good], axis=0).astype(np.float32)
             view, mask = resample(i, first)
             both = common(view, mask)
-            f, second = _flow_pass(a, view, mask, both, params, None, round_trip=False)
+            f, second = _flow_pass(a, grid, view, mask, both, params, None, round_trip=False)
             f, good = f + first, good & second
         cover[i] = good.sum() / max(both.sum(), 1)
         if good.sum() < MIN_GOOD_PIXELS:
